@@ -1,0 +1,87 @@
+"""Baselines of the paper's Table 1/2, all with the AniFormer interface
+`model(driving (B, T, V1, 3), target (B, V2, 3)) -> (B, T, V2, 3)`.
+
+- NPT: Wang et al., "Neural Pose Transfer by Spatially Adaptive Instance Normalization", CVPR 2020.
+  PointNet pose encoder; its per-vertex features concatenated with the identity (target)
+  coordinates; SPAdaIN residual decoder; applied frame by frame, as the paper compares it.
+- Regression-head transformer (Table 1 "head"): `AniFormerConfig(head="regression")`, one mesh
+  per window; built through `build_model` like the others.
+- Copy-driver: the bounding-box-centred driving frames themselves; the floor any model must beat,
+  defined only where driver and target share a topology.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from einops import rearrange
+from torch import nn
+
+from aniformer.mesh import center_bbox
+from aniformer.model import AniFormer, AniFormerConfig, FeatureExtractor, SPAdaINResBlock
+
+
+@dataclass(frozen=True)
+class NPTConfig:
+    """NPT's published widths: encoder 64-128-1024, decoder 1027-513-256 (1027 = 1024 + xyz)."""
+
+    extractor_channels: tuple[int, ...] = (64, 128, 1024)
+    channels: tuple[int, ...] = (1027, 513, 256)
+    window: int = 3  # frames per sample; NPT treats them independently
+
+    def __post_init__(self):
+        object.__setattr__(self, "channels", tuple(self.channels))
+        object.__setattr__(self, "extractor_channels", tuple(self.extractor_channels))
+        if not self.channels or not self.extractor_channels:
+            raise ValueError("channels and extractor_channels must not be empty")
+
+    def to_dict(self) -> dict:
+        return {"extractor_channels": list(self.extractor_channels), "channels": list(self.channels),
+                "window": self.window}
+
+    def output_frames(self) -> slice:
+        return slice(None)
+
+
+class NPT(nn.Module):
+    def __init__(self, config: NPTConfig = NPTConfig()):
+        super().__init__()
+        self.config = config
+        self.extractor = FeatureExtractor(config.extractor_channels)
+        widths = (config.extractor_channels[-1] + 3, *config.channels)
+        self.projections = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
+        self.blocks = nn.ModuleList(SPAdaINResBlock(c) for c in config.channels)
+        self.to_xyz = nn.Linear(config.channels[-1], 3)
+
+    def forward(self, driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        B, T, V1, _ = driving.shape
+        V2 = target.shape[1]
+        frames = rearrange(driving, "b t v c -> (b t) 1 v c")  # frame by frame: frames become samples
+        identity = target.repeat_interleave(T, dim=0)
+        pose = self.extractor(frames)
+        if V1 != V2:  # no vertex correspondence: broadcast the pooled pose code
+            pose = pose.amax(dim=2, keepdim=True).expand(-1, -1, V2, -1)
+        x = torch.cat([pose, identity.unsqueeze(1)], dim=-1)
+        for projection, block in zip(self.projections, self.blocks):
+            x = block(projection(x), identity)
+        return rearrange(2 * torch.tanh(self.to_xyz(x)), "(b t) 1 v c -> b t v c", b=B)
+
+
+def copy_driver(driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The driving frames, bounding-box centred; needs the target's topology (same vertex count)."""
+    if driving.shape[2] != target.shape[1]:
+        raise ValueError(f"copy-driver needs equal vertex counts, got driver {driving.shape[2]} "
+                         f"and target {target.shape[1]}")
+    return center_bbox(driving)
+
+
+MODELS = {"aniformer": (AniFormer, AniFormerConfig), "npt": (NPT, NPTConfig)}
+
+
+def build_model(name: str, config: dict) -> nn.Module:
+    """A model from its registry name and config dict (as stored in checkpoints and MLflow)."""
+    if name not in MODELS:
+        raise ValueError(f"unknown model {name!r}; choose one of {sorted(MODELS)}")
+    model_cls, config_cls = MODELS[name]
+    return model_cls(config_cls(**config))

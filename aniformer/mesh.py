@@ -1,0 +1,89 @@
+"""Triangle meshes in and out: trimesh for file formats, numpy arrays everywhere else.
+
+Vertices are `(V, 3)` float32 in metres (z up), faces `(F, 3)` int64. Files with quads or other
+polygons are triangulated on load (trimesh fans them); anything else that is not a usable
+triangle mesh is refused with a one-line `MeshError`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from aniformer.cli import UserError, atomic_path
+
+MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
+DEFAULT_MAX_VERTICES = 2_000_000
+
+
+class MeshError(UserError):
+    """A mesh file or array that cannot be used, with the reason in one line."""
+
+
+def validate_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh",
+                  max_vertices: int = DEFAULT_MAX_VERTICES) -> None:
+    """Raise `MeshError` unless `vertices (V, 3)` and `faces (F, 3)` form a usable triangle mesh."""
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise MeshError(f"{name}: vertices must have shape (V, 3), got {tuple(vertices.shape)}")
+    if len(vertices) == 0:
+        raise MeshError(f"{name}: mesh is empty (no vertices)")
+    if len(vertices) > max_vertices:
+        raise MeshError(f"{name}: {len(vertices):,} vertices exceeds the limit of {max_vertices:,}")
+    if not np.isfinite(vertices).all():
+        raise MeshError(f"{name}: vertex coordinates contain NaN or infinity")
+    if faces.ndim != 2 or len(faces) == 0:
+        raise MeshError(f"{name}: mesh has no faces")
+    if faces.shape[1] != 3:
+        raise MeshError(f"{name}: faces must be triangles, got {faces.shape[1]} vertices per face")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise MeshError(f"{name}: face index out of range [0, {len(vertices) - 1}]")
+
+
+def load_mesh(path: str | os.PathLike, max_vertices: int = DEFAULT_MAX_VERTICES) -> tuple[np.ndarray, np.ndarray]:
+    """Read a mesh file -> (vertices (V, 3) float32, faces (F, 3) int64), validated."""
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"{path}: no such file")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise MeshError(f"{path}: unsupported mesh format (use one of {', '.join(MESH_SUFFIXES)})")
+    if path.stat().st_size == 0:
+        raise MeshError(f"{path}: file is empty")
+    try:
+        # process=False keeps the vertex order and count exactly as in the file.
+        mesh = trimesh.load(path, process=False, force="mesh")
+    except Exception as e:  # trimesh raises many types for garbage input; all mean "unreadable"
+        raise MeshError(f"{path}: cannot read mesh ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise MeshError(f"{path}: file holds no triangle mesh")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3) if len(mesh.faces) else np.zeros((0, 3), np.int64)
+    validate_mesh(vertices, faces, str(path), max_vertices)
+    return vertices.astype(np.float32), faces
+
+
+def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> Path:
+    """Write a mesh atomically; the format follows the suffix."""
+    path = Path(path)
+    mesh = trimesh.Trimesh(vertices=np.asarray(vertices, np.float64), faces=faces, process=False)
+    with atomic_path(path) as tmp:
+        mesh.export(tmp, file_type=path.suffix.lstrip(".").lower())
+    return path
+
+
+def center_bbox(vertices):
+    """Centre meshes on their bounding box, as the paper does; works on numpy or torch `(..., V, 3)`."""
+    if isinstance(vertices, np.ndarray):
+        low, high = vertices.min(-2, keepdims=True), vertices.max(-2, keepdims=True)
+    else:
+        low, high = vertices.amin(-2, keepdim=True), vertices.amax(-2, keepdim=True)
+    return vertices - (low + high) / 2
+
+
+def shuffle_vertices(vertices: np.ndarray, faces: np.ndarray, perm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reorder vertices `(..., V, 3)` by `perm` (new i = old perm[i]) and remap faces so triangles stay the same."""
+    inverse = np.empty_like(perm)
+    inverse[perm] = np.arange(len(perm))
+    return vertices[..., perm, :], inverse[faces]

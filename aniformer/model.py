@@ -1,0 +1,234 @@
+"""AniFormer: a transformer that animates a target mesh with the motion of a driving mesh sequence.
+
+Haoyu Chen, Hao Tang, Nicu Sebe, Guoying Zhao. "AniFormer: Data-driven 3D Animation with
+Transformer". BMVC 2021. Section 3 and supplementary Tables 3-6 give the network:
+
+    feature extractor (Table 3)   PointNet-style per-vertex MLP 3 -> 64 -> 128 -> 1024,
+                                  each InstanceNorm + ReLU, weights shared by all frames
+    temporal embedding (eq. 1)    Z = {Z_1; ...; Z_T} + E_t
+    4 encoder stages (Tables 4,6) at 1024, 512, 512, 256 channels, each
+                                  1x1 conv -> attention A = softmax(q k^T) (eq. 2)
+                                  -> Z' = gamma * A v + Z, gamma initialised to 0 (eq. 3)
+                                  -> InsNorm residual block modulated by the target mesh
+    InsNorm block (Table 5)       SPAdaIN: InstanceNorm(x) * w(target_xyz) + b(target_xyz)
+    output (Table 6)              1x1 conv -> 3, 2 * tanh; one mesh per driving frame
+                                  (the "regression constraints" of Sec. 3.2 supervise them all)
+
+We follow the paper's text, not the accidents of its public code (see docs/model.md): standard
+multi-head attention (scaled by 1/sqrt(d)) instead of single-head unscaled; InstanceNorm in the
+extractor instead of LayerNorm(6890); and a per-frame temporal embedding `(T, C)` instead of a
+per-vertex `(T, C, V)` one, so that V is free. Attention goes through
+`F.scaled_dot_product_attention`, which never materialises the V x V matrix (flash /
+memory-efficient kernels); 1x1 convolutions are `nn.Linear` over channels-last `(..., V, C)`
+tensors, which is the layout those kernels want.
+
+Switches beyond the paper (all in `AniFormerConfig`):
+    attention="cross"       target-vertex queries attend to driving-vertex keys/values, so the
+                            output is permutation-equivariant in the target and V1 != V2 is free
+    temporal="attention"    each vertex additionally attends across the T frames
+    head="regression"       the vanilla regression-head transformer of Table 1 (one mesh per window)
+    pool_driving=True       the paper's max-pool variant for non-SMPL meshes: driving features are
+                            max-pooled over vertices and broadcast to the target's vertices (used
+                            automatically by attention="self" when V1 != V2)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from einops import rearrange
+from torch import nn
+
+ATTENTIONS = ("self", "cross")
+TEMPORALS = ("embedding", "attention")
+HEADS = ("constraints", "regression")
+
+
+@dataclass(frozen=True)
+class AniFormerConfig:
+    """Hyper-parameters; the defaults are the paper's layer plan."""
+
+    channels: tuple[int, ...] = (1024, 512, 512, 256)
+    extractor_channels: tuple[int, ...] = (64, 128, 1024)
+    heads: int = 8
+    window: int = 3
+    attention: str = "self"
+    temporal: str = "embedding"
+    head: str = "constraints"
+    pool_driving: bool = False
+
+    def __post_init__(self):
+        object.__setattr__(self, "channels", tuple(self.channels))
+        object.__setattr__(self, "extractor_channels", tuple(self.extractor_channels))
+        if self.attention not in ATTENTIONS:
+            raise ValueError(f"attention must be one of {ATTENTIONS}, got {self.attention!r}")
+        if self.temporal not in TEMPORALS:
+            raise ValueError(f"temporal must be one of {TEMPORALS}, got {self.temporal!r}")
+        if self.head not in HEADS:
+            raise ValueError(f"head must be one of {HEADS}, got {self.head!r}")
+        if not self.channels or not self.extractor_channels:
+            raise ValueError("channels and extractor_channels must not be empty")
+        if self.window < 1:
+            raise ValueError(f"window must be >= 1, got {self.window}")
+        bad = [c for c in self.channels if c % self.heads]
+        if bad:
+            raise ValueError(f"every channel count must be divisible by heads={self.heads}, got {bad}")
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    def output_frames(self) -> slice:
+        """Which frames of a window the model predicts: all of them, or the centre one (regression head)."""
+        if self.head == "regression":
+            return slice(self.window // 2, self.window // 2 + 1)
+        return slice(None)
+
+
+def instance_norm(x: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
+    """Normalise every channel over the vertices of its mesh: `(..., V, C)`; statistics in fp32."""
+    xf = x.float()
+    var, mean = torch.var_mean(xf, dim=-2, unbiased=False, keepdim=True)
+    return ((xf - mean) * torch.rsqrt(var + eps)).to(x.dtype)
+
+
+class FeatureExtractor(nn.Module):
+    """Table 3: per-vertex MLP (1x1 convs), each layer InstanceNorm + ReLU. `(..., V, 3) -> (..., V, C)`."""
+
+    def __init__(self, channels: tuple[int, ...]):
+        super().__init__()
+        widths = (3, *channels)
+        self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        x = points
+        for layer in self.layers:
+            x = F.relu(instance_norm(layer(x)))
+        return x
+
+
+class SPAdaIN(nn.Module):
+    """Table 5: InstanceNorm(x) * w(target) + b(target); the target's xyz sets a per-vertex scale and shift."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.to_scale = nn.Linear(3, dim)
+        self.to_shift = nn.Linear(3, dim)
+
+    def forward(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        # x (B, T, V, C); target (B, V, 3) -> modulation (B, 1, V, C), shared by all frames
+        target = target.unsqueeze(1)
+        return instance_norm(x) * self.to_scale(target) + self.to_shift(target)
+
+
+class SPAdaINResBlock(nn.Module):
+    """Table 4 rows 13-19: two SPAdaIN -> 1x1 conv -> ReLU steps, plus one on the shortcut."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.norm1, self.norm2, self.norm_skip = SPAdaIN(dim), SPAdaIN(dim), SPAdaIN(dim)
+        self.fc1, self.fc2, self.fc_skip = nn.Linear(dim, dim), nn.Linear(dim, dim), nn.Linear(dim, dim)
+
+    def forward(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        out = F.relu(self.fc1(self.norm1(x, target)))
+        out = F.relu(self.fc2(self.norm2(out, target)))
+        return out + F.relu(self.fc_skip(self.norm_skip(x, target)))
+
+
+class VertexAttention(nn.Module):
+    """Eq. 2-3: gamma-gated multi-head attention across the vertices of each frame.
+
+    Self-attention takes q, k, v from `x`; cross-attention takes k, v from `memory` (the driving
+    features) so that queries live on the target's vertices. `(B, T, V, C) -> (B, T, V, C)`.
+    """
+
+    def __init__(self, dim: int, heads: int, memory_dim: int | None = None):
+        super().__init__()
+        self.heads = heads
+        self.to_q = nn.Linear(dim, dim)
+        self.to_kv = nn.Linear(memory_dim or dim, 2 * dim)
+        self.gamma = nn.Parameter(torch.zeros(1))
+
+    def forward(self, x: torch.Tensor, memory: torch.Tensor | None = None) -> torch.Tensor:
+        source = x if memory is None else memory
+        # The einops views keep the head dim contiguous (stride 1), which the flash kernel requires.
+        q = rearrange(self.to_q(x), "b t v (h d) -> (b t) h v d", h=self.heads)
+        k, v = rearrange(self.to_kv(source), "b t v (two h d) -> two (b t) h v d", two=2, h=self.heads)
+        out = F.scaled_dot_product_attention(q, k, v)
+        return x + self.gamma * rearrange(out, "(b t) h v d -> b t v (h d)", b=x.shape[0])
+
+
+class TemporalAttention(nn.Module):
+    """Ours: gamma-gated multi-head attention of every vertex across the T frames of its window."""
+
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        self.heads = heads
+        self.to_qkv = nn.Linear(dim, 3 * dim)
+        self.gamma = nn.Parameter(torch.zeros(1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        q, k, v = rearrange(self.to_qkv(x), "b t v (three h d) -> three (b v) h t d", three=3, h=self.heads)
+        out = F.scaled_dot_product_attention(q, k, v)
+        return x + self.gamma * rearrange(out, "(b v) h t d -> b t v (h d)", b=x.shape[0])
+
+
+class EncoderStage(nn.Module):
+    """Table 6 `conv -> AniFormer encoder`: width change, attention, then the target-modulated block."""
+
+    def __init__(self, in_dim: int, dim: int, config: AniFormerConfig, memory_dim: int):
+        super().__init__()
+        self.proj = nn.Linear(in_dim, dim)
+        self.attention = VertexAttention(dim, config.heads, memory_dim if config.attention == "cross" else None)
+        self.temporal = TemporalAttention(dim, config.heads) if config.temporal == "attention" else None
+        self.block = SPAdaINResBlock(dim)
+
+    def forward(self, x: torch.Tensor, target: torch.Tensor, memory: torch.Tensor | None) -> torch.Tensor:
+        x = self.attention(self.proj(x), memory)
+        if self.temporal is not None:
+            x = self.temporal(x)
+        return self.block(x, target)
+
+
+class AniFormer(nn.Module):
+    """`model(driving (B, T, V1, 3), target (B, V2, 3)) -> (B, T, V2, 3)` (`(B, 1, V2, 3)` with the regression head)."""
+
+    def __init__(self, config: AniFormerConfig = AniFormerConfig()):
+        super().__init__()
+        self.config = config
+        feature_dim = config.extractor_channels[-1]
+        self.extractor = FeatureExtractor(config.extractor_channels)
+        self.target_extractor = FeatureExtractor(config.extractor_channels) if config.attention == "cross" else None
+        self.temporal_embedding = nn.Parameter(torch.zeros(config.window, feature_dim))
+        nn.init.trunc_normal_(self.temporal_embedding, std=0.02)
+        widths = (feature_dim, *config.channels)
+        self.stages = nn.ModuleList(
+            EncoderStage(a, b, config, feature_dim) for a, b in zip(widths[:-1], widths[1:])
+        )
+        last = config.channels[-1]
+        if config.head == "regression":
+            self.to_xyz = nn.Sequential(nn.Linear(last, last), nn.ReLU(), nn.Linear(last, 3))
+        else:
+            self.to_xyz = nn.Linear(last, 3)
+
+    def forward(self, driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        B, T, V1, _ = driving.shape
+        V2 = target.shape[1]
+        if T != self.config.window:
+            raise ValueError(f"driving window has {T} frames, the model was built for window={self.config.window}")
+        features = self.extractor(driving) + self.temporal_embedding[:, None, :]  # eq. 1
+        if self.config.attention == "cross":
+            memory = features
+            x = self.target_extractor(target).unsqueeze(1).expand(B, T, V2, -1)
+        else:
+            memory = None
+            if self.config.pool_driving or V1 != V2:
+                features = features.amax(dim=2, keepdim=True).expand(B, T, V2, -1)
+            x = features
+        for stage in self.stages:
+            x = stage(x, target, memory)
+        if self.config.head == "regression":
+            x = x.mean(dim=1, keepdim=True)  # average over the sequence, one output mesh
+        return 2 * torch.tanh(self.to_xyz(x))

@@ -1,0 +1,120 @@
+"""Forward / train-step time and peak memory of AniFormer against a dense fp32 reference.
+
+The reference is the same layer plan run the way the paper's code runs it: fp32 and attention
+that materialises the V x V map (PyTorch's math SDPA kernel computes softmax(q k^T) explicitly).
+Ours: `F.scaled_dot_product_attention` with its fused kernels, bf16 autocast on GPUs with bf16.
+Each measurement runs in its own process so peak memory is not polluted by the previous one.
+
+    python bench/model_bench.py --device cpu --vertices 1229 --window 3 --batch 1
+    python bench/model_bench.py --device cuda --vertices 6890 12272 --batch 1 16
+Prints one Markdown row per (implementation, V, batch).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from contextlib import nullcontext
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from aniformer import AniFormer, AniFormerConfig  # noqa: E402
+
+IMPLEMENTATIONS = ("ours", "dense-fp32")
+
+
+def measure(impl: str, device: str, vertices: int, window: int, batch: int, steps: int, threads: int) -> dict:
+    torch.manual_seed(0)
+    if device == "cpu":
+        torch.set_num_threads(threads)
+    model = AniFormer(AniFormerConfig(window=window)).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=5e-5)
+    driving = torch.randn(batch, window, vertices, 3, device=device)
+    target = torch.randn(batch, vertices, 3, device=device)
+    use_bf16 = impl == "ours" and device == "cuda" and torch.cuda.is_bf16_supported()
+    autocast = torch.autocast("cuda", torch.bfloat16, enabled=use_bf16)
+    if impl == "dense-fp32":
+        from torch.nn.attention import SDPBackend, sdpa_kernel
+        kernel = lambda: sdpa_kernel(SDPBackend.MATH)  # noqa: E731
+    else:
+        kernel = nullcontext
+
+    def sync():
+        if device == "cuda":
+            torch.cuda.synchronize()
+
+    def forward():
+        with torch.no_grad(), autocast, kernel():
+            model(driving[:1], target[:1])
+
+    def train_step():
+        with autocast, kernel():
+            loss = (model(driving, target) - driving).square().mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    def timed(fn) -> float:
+        fn()  # warm-up
+        sync()
+        start = time.perf_counter()
+        for _ in range(steps):
+            fn()
+        sync()
+        return (time.perf_counter() - start) / steps
+
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    forward_s = timed(forward)
+    step_s = timed(train_step)
+    if device == "cuda":
+        peak_gib = torch.cuda.max_memory_allocated() / 2**30
+    else:  # the process high-water mark above what model + inputs already held
+        peak_gib = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before) / 2**20
+    return dict(impl=impl, device=device, vertices=vertices, window=window, batch=batch,
+                forward_ms=forward_s * 1e3, step_ms_per_sample=step_s * 1e3 / batch, peak_gib=peak_gib,
+                dtype="bf16" if use_bf16 else "fp32")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--vertices", type=int, nargs="+", default=[1229])
+    parser.add_argument("--batch", type=int, nargs="+", default=[1])
+    parser.add_argument("--window", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument("--impl", choices=IMPLEMENTATIONS, nargs="+", default=list(IMPLEMENTATIONS))
+    parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # child process: one measurement
+    args = parser.parse_args()
+    if args.one:
+        print(json.dumps(measure(args.impl[0], args.device, args.vertices[0], args.window, args.batch[0],
+                                 args.steps, args.threads)))
+        return
+    print("| impl | device | dtype | V | T | batch | forward B=1 (ms) | train step / sample (ms) | peak (GiB) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for v in args.vertices:
+        for batch in args.batch:
+            for impl in args.impl:
+                cmd = [sys.executable, __file__, "--one", "--impl", impl, "--device", args.device,
+                       "--vertices", str(v), "--batch", str(batch), "--window", str(args.window),
+                       "--steps", str(args.steps), "--threads", str(args.threads)]
+                run = subprocess.run(cmd, capture_output=True, text=True)
+                if run.returncode != 0:
+                    last = (run.stderr.strip().splitlines() or ["?"])[-1]
+                    print(f"| {impl} | {args.device} | | {v} | {args.window} | {batch} | failed: {last[:80]} | | |")
+                    continue
+                r = json.loads(run.stdout.strip().splitlines()[-1])
+                print(f"| {r['impl']} | {r['device']} | {r['dtype']} | {v} | {r['window']} | {batch} | "
+                      f"{r['forward_ms']:.1f} | {r['step_ms_per_sample']:.1f} | {r['peak_gib']:.2f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
