@@ -1,0 +1,93 @@
+"""Filmstrip previews of mesh sequences (docs, MLflow artifacts, eyeballing synthetic motions).
+
+One row per sequence, one column per chosen frame, drawn with matplotlib's Agg backend as
+shaded triangles (Lambert shading, orthographic camera), so it works on headless machines
+without an OpenGL stack. Meshes are in metres with z up and the body facing -y; the default
+camera looks at the front from 30 degrees to the body's left so that motion towards the camera
+(punches, knee raises) still reads. All panels of a row share the same axes limits, so
+translation (hops) shows, and a faint line marks the row's lowest point (the ground).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+
+_BASE_COLOUR = np.array([0.62, 0.70, 0.86])
+_LIGHT = np.array([-0.3, -1.0, 0.6]) / np.linalg.norm([-0.3, -1.0, 0.6])
+
+
+def _shaded_colours(triangles: np.ndarray) -> np.ndarray:
+    """Per-face RGB from a two-sided Lambert term plus ambient."""
+    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True) + 1e-12
+    diffuse = np.abs(normals @ _LIGHT)
+    return np.clip(_BASE_COLOUR * (0.35 + 0.65 * diffuse[:, None]), 0.0, 1.0)
+
+
+def render_filmstrip(
+    rows: list[tuple[str, np.ndarray, np.ndarray]],
+    path: str | os.PathLike,
+    frames: int | None = 8,
+    title: str | None = None,
+    panel_px: int = 120,
+    view: tuple[float, float] = (10.0, -60.0),
+) -> Path:
+    """Render ``rows`` of (label, vertices (T, V, 3), faces (F, 3)) to a PNG at ``path``.
+
+    Each row shows up to ``frames`` evenly spaced frames of its sequence (all frames if None).
+    ``view`` is matplotlib's (elevation, azimuth) in degrees; (0, -90) is straight from the front.
+    The file is written to a temporary name in the same directory and then renamed, so readers
+    never see a partial PNG. Returns the path.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    columns = max(len(v) if frames is None else min(frames, len(v)) for _, v, _ in rows)
+    inch = panel_px / 100.0
+    header = 0.3 if title else 0.0
+    fig = plt.figure(figsize=(columns * inch, len(rows) * inch + header), dpi=100)
+    if title:
+        fig.suptitle(title, fontsize=8)
+    top = 1.0 - header / (len(rows) * inch + header)
+    for r, (label, vertices, faces) in enumerate(rows):
+        vertices = np.asarray(vertices, dtype=np.float64)
+        count = len(vertices) if frames is None else min(frames, len(vertices))
+        chosen = np.linspace(0, len(vertices) - 1, count).round().astype(int)
+        low, high = vertices.reshape(-1, 3).min(0), vertices.reshape(-1, 3).max(0)
+        centre, half = (low + high) / 2, (high - low).max() / 2
+        for c, t in enumerate(chosen):
+            left, bottom = c / columns, top - (r + 1) * top / len(rows)
+            ax = fig.add_axes((left, bottom, 1 / columns, top / len(rows)), projection="3d")
+            triangles = vertices[t][faces]
+            ax.add_collection3d(Poly3DCollection(triangles, facecolors=_shaded_colours(triangles), linewidths=0))
+            ground = [[centre[0] - half, centre[0] + half], [high[1], high[1]], [low[2], low[2]]]
+            ax.plot(*ground, color="0.6", linewidth=0.5)
+            ax.set_xlim(centre[0] - half, centre[0] + half)
+            ax.set_ylim(centre[1] - half, centre[1] + half)
+            ax.set_zlim(centre[2] - half, centre[2] + half)
+            ax.set_box_aspect((1, 1, 1), zoom=1.6)
+            ax.set_proj_type("ortho")
+            ax.view_init(elev=view[0], azim=view[1])
+            ax.set_axis_off()
+            ax.text2D(0.5, 0.02, f"t={t}", transform=ax.transAxes, ha="center", fontsize=5)
+            if c == 0:
+                ax.text2D(0.02, 0.92, label, transform=ax.transAxes, fontsize=6)
+    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".png", delete=False) as tmp:
+        try:
+            fig.savefig(tmp, format="png", dpi=100)
+        except BaseException:
+            os.unlink(tmp.name)
+            raise
+        finally:
+            plt.close(fig)
+    os.chmod(tmp.name, 0o644)  # NamedTemporaryFile creates 0600
+    os.replace(tmp.name, path)
+    return path

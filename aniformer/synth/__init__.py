@@ -1,0 +1,1 @@
+"""Synthetic training data: Anny bodies (``bodies``) performing procedural actions (``motions``)."""
