@@ -1,4 +1,5 @@
-# Two commands on a fresh machine: `make demo` (the main job) and `make test` (the test suite).
+# Two commands on a fresh machine: `make demo` (the main job: train the default CPU config on a local
+# Ray cluster, tracked in ./mlflow.db) and `make test` (the test suite).
 # Both create ./.venv on first use. torch==2.13.0 is installed first and on its own so that
 # anny's torch requirement does not pull a multi-GB CUDA build on CPU-only machines.
 VENV ?= .venv
@@ -15,7 +16,7 @@ $(VENV)/.installed: pyproject.toml
 install: $(VENV)/.installed
 
 demo: $(VENV)/.installed
-	$(PY) bench/model_bench.py --device cpu --vertices 1229 --impl ours
+	$(PY) jobs/train.py --config configs/default.yaml --out runs/default
 
 test: $(VENV)/.installed
 	$(PY) -m pytest

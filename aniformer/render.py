@@ -91,3 +91,82 @@ def render_filmstrip(
     os.chmod(tmp.name, 0o644)  # NamedTemporaryFile creates 0600
     os.replace(tmp.name, path)
     return path
+
+
+def render_animation_gif(
+    panels: list[tuple[str, np.ndarray, np.ndarray]],
+    path: str | os.PathLike,
+    fps: float = 30.0,
+    max_frames: int | None = 60,
+    panel_px: int = 240,
+    view: tuple[float, float] = (10.0, -60.0),
+    progress=None,
+    max_faces: int = 50_000,
+) -> Path:
+    """An animated GIF of ``panels`` of (label, vertices (N, V, 3), faces) side by side (e.g. driver | result).
+
+    All panels must have the same number of frames N. At most ``max_frames`` evenly spaced frames
+    are drawn (all if None); each GIF frame lasts as long as the frames it stands for at ``fps``, so
+    the preview keeps real time. Each panel keeps one set of axes limits over the whole sequence.
+    ``progress(1)`` is called after every drawn frame. Meshes with more than ``max_faces`` faces
+    are drawn with a fixed random subset of them (matplotlib draws ~10^4-10^5 polygons per second).
+    Written to a temporary name, then renamed.
+    """
+    from PIL import Image
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lengths = {len(v) for _, v, _ in panels}
+    if len(lengths) != 1:
+        raise ValueError(f"panels have different frame counts: {sorted(lengths)}")
+    n = lengths.pop()
+    rng = np.random.default_rng(0)
+    panels = [(label, vertices, faces if len(faces) <= max_faces
+               else faces[np.sort(rng.choice(len(faces), max_faces, replace=False))])
+              for label, vertices, faces in panels]
+    count = n if max_frames is None else max(1, min(max_frames, n))
+    chosen = np.linspace(0, n - 1, count).round().astype(int)
+    duration_ms = max(20, int(round(1000.0 / fps * n / count)))  # GIF delays are in 10 ms units
+    inch = panel_px / 100.0
+    fig = plt.figure(figsize=(len(panels) * inch, inch), dpi=100)
+    axes, limits = [], []
+    for p, (_, vertices, _) in enumerate(panels):
+        axes.append(fig.add_axes((p / len(panels), 0.0, 1 / len(panels), 1.0), projection="3d"))
+        flat = np.asarray(vertices, np.float64).reshape(-1, 3)
+        low, high = flat.min(0), flat.max(0)
+        limits.append(((low + high) / 2, (high - low).max() / 2, low, high))
+    images = []
+    try:
+        for t in chosen:
+            for ax, (label, vertices, faces), (centre, half, low, high) in zip(axes, panels, limits):
+                ax.cla()
+                triangles = np.asarray(vertices[t], np.float64)[faces]
+                ax.add_collection3d(Poly3DCollection(triangles, facecolors=_shaded_colours(triangles), linewidths=0))
+                ax.plot([centre[0] - half, centre[0] + half], [high[1], high[1]], [low[2], low[2]],
+                        color="0.6", linewidth=0.5)
+                ax.set_xlim(centre[0] - half, centre[0] + half)
+                ax.set_ylim(centre[1] - half, centre[1] + half)
+                ax.set_zlim(centre[2] - half, centre[2] + half)
+                ax.set_box_aspect((1, 1, 1), zoom=1.5)
+                ax.set_proj_type("ortho")
+                ax.view_init(elev=view[0], azim=view[1])
+                ax.set_axis_off()
+                ax.text2D(0.03, 0.93, label, transform=ax.transAxes, fontsize=8)
+                ax.text2D(0.5, 0.02, f"frame {t}", transform=ax.transAxes, ha="center", fontsize=6)
+            fig.canvas.draw()
+            rgba = np.asarray(fig.canvas.buffer_rgba())
+            images.append(Image.fromarray(rgba[..., :3].copy()))
+            if progress is not None:
+                progress(1)
+    finally:
+        plt.close(fig)
+    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".gif", delete=False) as tmp:
+        try:
+            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration_ms,
+                           loop=0, optimize=False)
+        except BaseException:
+            os.unlink(tmp.name)
+            raise
+    os.chmod(tmp.name, 0o644)
+    os.replace(tmp.name, path)
+    return path

@@ -1,0 +1,219 @@
+"""Evaluation: PMD (x1e-4) of models and baselines over the pair splits of a mesh bank, a noise
+sweep, and the Table-2-style report (Markdown, CSV, PNG). numpy + torch + matplotlib only.
+
+Every contender is a callable ``predict(driving (B, T, V1, 3), target (B, V2, 3)) -> (B, T', V2, 3)``
+scored on the frames it predicts (``frames``: all of a window, or the centre one for the
+regression head), exactly as training reports ``pmd_<split>``, so a checkpoint's numbers here
+match its training curves for the same pairs. The pairs are a ``pipeline.data.PairSampler``-like
+object: anything with ``batch(split, epoch, indices, n=...)`` returning centred numpy arrays
+``driving``, ``target``, ``ground_truth``. The copy-driver needs vertex correspondence between
+driver and ground truth, so it is scored on the same pairs drawn without vertex shuffling (PMD is
+invariant to permuting prediction and ground truth together, so the other models' numbers do not
+depend on the shuffle except through what the model does with the order).
+
+Noise: ``noise=a`` adds i.i.d. uniform noise in [-a, a] metres to every driving coordinate (after
+centring), drawn from a generator seeded by (seed, split, level, batch), so every contender sees
+the same noisy inputs at a given level.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from aniformer.metrics import PMD_SCALE, pmd
+
+Predict = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@dataclass
+class Contender:
+    """One row of the table: a name, a predictor, the window it takes and the frames it predicts."""
+
+    name: str
+    predict: Predict
+    window: int
+    frames: slice = field(default_factory=lambda: slice(None))
+    needs_correspondence: bool = False  # copy-driver: scored on unshuffled pairs
+
+
+def model_contender(name: str, model: torch.nn.Module, device: str | torch.device = "cpu") -> Contender:
+    """Wrap a model built by `aniformer.baselines.build_model` (eval mode, no grad, fp32 output)."""
+    device = torch.device(device)
+    model = model.to(device).eval()
+
+    @torch.inference_mode()
+    def predict(driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return model(driving.to(device), target.to(device)).float().cpu()
+
+    return Contender(name, predict, model.config.window, model.config.output_frames())
+
+
+def copy_driver_contender(window: int, name: str = "copy-driver") -> Contender:
+    from aniformer.baselines import copy_driver
+
+    return Contender(name, copy_driver, window, slice(None), needs_correspondence=True)
+
+
+def _noise_rng(seed: int, split: str, level: float, lo: int) -> np.random.Generator:
+    return np.random.default_rng([int(seed), zlib.crc32(split.encode()), int(round(level * 1e9)), int(lo)])
+
+
+def split_pmd(contender: Contender, sampler, split: str, *, pairs: int, batch_size: int = 16,
+              noise: float = 0.0, seed: int = 0, epoch: int = 0) -> float:
+    """Mean PMD x1e4 of ``contender`` over ``pairs`` pairs of ``split`` (pair i is the same for every
+    contender with the same window and sampler seed)."""
+    total, count = 0.0, 0
+    for lo in range(0, pairs, batch_size):
+        batch = sampler.batch(split, epoch, np.arange(lo, min(pairs, lo + batch_size)), n=pairs)
+        driving = batch["driving"]
+        if noise > 0:
+            driving = driving + _noise_rng(seed, split, noise, lo).uniform(-noise, noise, driving.shape).astype(np.float32)
+        pred = contender.predict(torch.from_numpy(np.ascontiguousarray(driving)), torch.from_numpy(batch["target"]))
+        gt = torch.from_numpy(batch["ground_truth"])[:, contender.frames]
+        if pred.shape != gt.shape:
+            raise ValueError(f"{contender.name}: prediction {tuple(pred.shape)} vs ground truth {tuple(gt.shape)}")
+        total += pmd(pred.float(), gt).item() * len(pred)
+        count += len(pred)
+    return total / max(count, 1) * PMD_SCALE
+
+
+class Samplers:
+    """One pair sampler per (window, shuffle) over one bank in memory, built on first use."""
+
+    def __init__(self, make: Callable[[int, str], object], shuffle: str):
+        self.make, self.shuffle, self._cache = make, shuffle, {}
+
+    def for_contender(self, contender: Contender):
+        key = (contender.window, "none" if contender.needs_correspondence else self.shuffle)
+        if key not in self._cache:
+            self._cache[key] = self.make(*key)
+        return self._cache[key]
+
+
+def evaluate_table(contenders: Sequence[Contender], samplers: Samplers, splits: Sequence[str], *, pairs: int,
+                   batch_size: int = 16, seed: int = 0, noise: float = 0.0,
+                   progress: Callable[[str, str], None] | None = None) -> dict[str, dict[str, float]]:
+    """{contender name: {split: PMD x1e4}}."""
+    table: dict[str, dict[str, float]] = {}
+    for c in contenders:
+        sampler = samplers.for_contender(c)
+        table[c.name] = {}
+        for split in splits:
+            table[c.name][split] = split_pmd(c, sampler, split, pairs=pairs, batch_size=batch_size,
+                                             noise=noise, seed=seed)
+            if progress is not None:
+                progress(c.name, split)
+    return table
+
+
+def noise_sweep(contenders: Sequence[Contender], samplers: Samplers, split: str, levels: Sequence[float], *,
+                pairs: int, batch_size: int = 16, seed: int = 0,
+                progress: Callable[[str, float], None] | None = None) -> dict[str, dict[float, float]]:
+    """{contender name: {noise level (m): PMD x1e4}} on one split."""
+    sweep: dict[str, dict[float, float]] = {}
+    for c in contenders:
+        sampler = samplers.for_contender(c)
+        sweep[c.name] = {}
+        for level in levels:
+            sweep[c.name][level] = split_pmd(c, sampler, split, pairs=pairs, batch_size=batch_size,
+                                             noise=level, seed=seed)
+            if progress is not None:
+                progress(c.name, level)
+    return sweep
+
+
+def parse_levels(text: str) -> list[float]:
+    """'0,0.005,0.01' -> [0.0, 0.005, 0.01]; ValueError naming the bad item."""
+    levels = []
+    for item in text.split(","):
+        item = item.strip()
+        try:
+            value = float(item)
+        except ValueError:
+            raise ValueError(f"noise level {item!r} is not a number") from None
+        if not math.isfinite(value) or value < 0:
+            raise ValueError(f"noise level {item!r} must be a finite number >= 0 (metres)")
+        levels.append(value)
+    if not levels:
+        raise ValueError("no noise levels given")
+    return sorted(set(levels))
+
+
+# --------------------------------------------------------------------------------------------
+# Reports
+# --------------------------------------------------------------------------------------------
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.2f}" if math.isfinite(value) else "n/a"
+
+
+def table_markdown(table: dict[str, dict[str, float]], splits: Sequence[str], descriptions: dict[str, str] | None = None,
+                   title: str | None = "PMD (×10⁻⁴, lower is better)", notes: Sequence[str] = ()) -> str:
+    """Rows: contenders; columns: splits; the best of each column in bold."""
+    best = {s: min((row[s] for row in table.values() if math.isfinite(row[s])), default=math.nan) for s in splits}
+    lines = [f"**{title}**", ""] if title else []
+    lines += ["| method | " + " | ".join(splits) + " |", "|---|" + "---:|" * len(splits)]
+    for name, row in table.items():
+        cells = [f"**{_fmt(row[s])}**" if row[s] == best[s] and len(table) > 1 else _fmt(row[s]) for s in splits]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    if descriptions:
+        lines += [""] + [f"- `{s}`: {descriptions[s]}" for s in splits if s in descriptions]
+    if notes:
+        lines += [""] + [f"{n}" for n in notes]
+    return "\n".join(lines) + "\n"
+
+
+def table_csv(table: dict[str, dict[str, float]], splits: Sequence[str]) -> str:
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["method", *splits])
+    for name, row in table.items():
+        writer.writerow([name, *(f"{row[s]:.6g}" for s in splits)])
+    return out.getvalue()
+
+
+def sweep_csv(sweep: dict[str, dict[float, float]]) -> str:
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["method", "noise_m", "pmd_x1e4"])
+    for name, row in sweep.items():
+        for level, value in row.items():
+            writer.writerow([name, f"{level:g}", f"{value:.6g}"])
+    return out.getvalue()
+
+
+def plot_sweep(sweep: dict[str, dict[float, float]], path, split: str) -> None:
+    """PMD vs noise amplitude, one line per contender (log y when the values span > 30x)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5), dpi=120)
+    values = []
+    for name, row in sweep.items():
+        levels = sorted(row)
+        ax.plot([lv * 1000 for lv in levels], [row[lv] for lv in levels], marker="o", label=name)
+        values += [row[lv] for lv in levels]
+    positive = [v for v in values if v > 0 and math.isfinite(v)]
+    if positive and max(positive) / min(positive) > 30:
+        ax.set_yscale("log")
+    ax.set_xlabel("uniform noise on driving vertices, ± mm")
+    ax.set_ylabel("PMD (×10⁻⁴)")
+    ax.set_title(f"robustness to driver noise ({split})", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    try:
+        fig.savefig(path, format="png")
+    finally:
+        plt.close(fig)

@@ -1,0 +1,282 @@
+"""Evaluate a checkpoint against the baselines: PMD (x1e-4) per split of a mesh bank, like the paper's Table 2.
+
+    python jobs/evaluate.py --checkpoint runs/tiny/best.pt --out eval/tiny
+    python jobs/evaluate.py --checkpoint 3f2a...c9 --bank data/default --out eval/default \\
+        --compare npt=runs/npt/best.pt --compare regression=runs/head/best.pt --noise 0,0.005,0.01,0.02
+
+``--checkpoint`` (and each ``--compare NAME=CKPT``) is a checkpoint file or an MLflow run id (its
+``checkpoints/best.pt`` artifact). The bank is ``--bank DIR``, else ``bank/`` beside the checkpoint
+(where jobs/train.py puts it). Rows: the checkpoint, every ``--compare`` model and the copy-driver;
+columns: every split of the bank's manifest (``--splits`` to choose). ``--noise`` adds a sweep of
+uniform driver noise on one split (``--noise-split``) and plots PMD vs noise. Outputs in ``--out``:
+results.md, results.csv, results.json (+ noise.csv, noise.png), written under a temporary name and
+renamed into place when complete; they and the metrics are logged to the MLflow run
+``evaluate-NAME`` (experiment ``aniformer``) unless ``--no-mlflow``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from aniformer.cli import UserError, check_output_dir, run, staged_output_dir  # noqa: E402
+from pipeline.tracking import RUN_ID, quiet_mlflow, resolve_checkpoint  # noqa: E402
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit 2 (through aniformer.cli.run)
+        raise UserError(f"{message} (see --help)")
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    p = _Parser(prog="evaluate.py", description=__doc__.split("\n\n")[0],
+                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
+    p.add_argument("--checkpoint", required=True, metavar="CKPT", help="checkpoint file or MLflow run id")
+    p.add_argument("--out", required=True, metavar="DIR", help="directory for the tables and plots")
+    p.add_argument("--bank", metavar="DIR", help="mesh bank (default: bank/ beside the checkpoint)")
+    p.add_argument("--compare", action="append", default=[], metavar="NAME=CKPT",
+                   help="a baseline checkpoint (file or run id) as row NAME; repeatable")
+    p.add_argument("--name", help="row label of --checkpoint and MLflow run evaluate-NAME (default: from the path)")
+    p.add_argument("--pairs", type=int, help="pairs per split (default: the checkpoint's data.eval_pairs)")
+    p.add_argument("--splits", help="comma-separated splits (default: every split of the bank)")
+    p.add_argument("--noise", metavar="LEVELS", help="noise sweep: comma-separated amplitudes in metres, e.g. 0,0.005,0.01")
+    p.add_argument("--noise-split", metavar="SPLIT", help="split of the noise sweep (default: unseen)")
+    p.add_argument("--seed", type=int, help="pair seed (default: the checkpoint's data.seed, as in training)")
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--no-copy-driver", action="store_true", help="leave out the copy-driver row")
+    p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: cuda if available)")
+    p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
+    p.add_argument("--no-mlflow", action="store_true", help="do not log to MLflow")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing non-empty --out")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p.parse_args(argv)
+
+
+# --------------------------------------------------------------------------------------------
+# Job plumbing shared with jobs/animate.py (which imports it from here)
+# --------------------------------------------------------------------------------------------
+
+
+def resolve_device(name: str):
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise UserError(f"--device {name!r}: not a torch device") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"--device {name}: CUDA is not available on this machine")
+    return device
+
+
+def _model_label(state: dict, model) -> str:
+    name = state["config"].get("model", {}).get("name", "aniformer")
+    if name == "npt":
+        return "NPT"
+    return "regression head" if model.config.head == "regression" else "AniFormer"
+
+
+def _default_name(spec: str) -> str:
+    match = RUN_ID.fullmatch(spec)
+    if match and not Path(spec).exists():
+        return match.group(1)[:8]
+    path = Path(spec).resolve()
+    return (path.parent.name if path.is_file() else path.name) or "checkpoint"
+
+
+def main(argv: list[str]) -> None:
+    args = parse_args(argv)
+    if args.pairs is not None and args.pairs < 1:
+        raise UserError(f"--pairs must be >= 1, got {args.pairs}")
+    if args.batch_size < 1:
+        raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
+    from aniformer.evaluate import parse_levels
+
+    try:
+        levels = parse_levels(args.noise) if args.noise is not None else None
+    except ValueError as e:
+        raise UserError(f"--noise: {e}") from None
+    compare = []
+    for item in args.compare:
+        label, sep, spec = item.partition("=")
+        if not sep or not label.strip() or not spec:
+            raise UserError(f"--compare {item!r} is not of the form NAME=CKPT")
+        compare.append((label.strip(), spec))
+    out = Path(args.out).expanduser().resolve()
+    check_output_dir(out, args.overwrite)
+    device = resolve_device(args.device)
+
+    from aniformer.checkpoint import model_from_checkpoint
+    from aniformer.evaluate import (
+        Samplers,
+        copy_driver_contender,
+        evaluate_table,
+        model_contender,
+        noise_sweep,
+        plot_sweep,
+        sweep_csv,
+        table_csv,
+        table_markdown,
+    )
+    from pipeline.data import GENERATION_FIELDS, SPLITS, PairSampler, load_bank, read_manifest
+
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="aniformer-eval-") as scratch:
+        ckpt_path = resolve_checkpoint(args.checkpoint, Path(scratch))
+        model, state = model_from_checkpoint(ckpt_path)
+        others = []
+        for label, spec in compare:
+            other, other_state = model_from_checkpoint(resolve_checkpoint(spec, Path(scratch)))
+            others.append((label, other, other_state, spec))
+
+    config = state["config"]
+    data_cfg = config.get("data", {}) or {}
+    if args.bank:
+        bank_dir = Path(args.bank).expanduser()
+    elif not Path(os.path.expanduser(args.checkpoint)).exists():
+        raise UserError("--checkpoint is an MLflow run id: pass --bank DIR (the mesh bank to evaluate on)")
+    else:
+        bank_dir = ckpt_path.parent / "bank" if ckpt_path.is_file() else ckpt_path / "bank"
+        if not (bank_dir / "manifest.json").is_file():
+            raise UserError(f"no mesh bank beside the checkpoint ({bank_dir}); pass --bank DIR")
+    manifest = read_manifest(bank_dir)
+    known = list(SPLITS)  # the pipeline's order (train, seen, unseen, ...), then any others of the bank
+    all_splits = sorted(manifest["splits"], key=lambda s: (known.index(s) if s in known else len(known), s))
+    splits = [s.strip() for s in args.splits.split(",")] if args.splits else all_splits
+    unknown = [s for s in splits if s not in all_splits]
+    if unknown or not splits:
+        raise UserError(f"--splits: unknown split(s) {', '.join(unknown) or '(none given)'}; "
+                        f"the bank has {', '.join(all_splits)}")
+    empty = [s for s in splits if not manifest["splits"][s]["motions"] or not manifest["splits"][s]["targets"]]
+    if empty and args.splits:
+        raise UserError(f"--splits: split(s) {', '.join(empty)} are empty in this bank")
+    splits = [s for s in splits if s not in empty]
+    noise_split = args.noise_split or ("unseen" if "unseen" in splits else splits[-1])
+    if levels is not None and noise_split not in all_splits:
+        raise UserError(f"--noise-split {noise_split!r} is not a split of the bank ({', '.join(all_splits)})")
+
+    name = args.name or _default_name(args.checkpoint)
+    rows = [(args.name or _model_label(state, model), model)] + [(label, m) for label, m, _, _ in others]
+    labels = [r[0] for r in rows] + ([] if args.no_copy_driver else ["copy-driver"])
+    if len(set(labels)) != len(labels):
+        raise UserError(f"row names must be unique, got {', '.join(labels)}")
+    contenders = [model_contender(label, m, device) for label, m in rows]
+    if not args.no_copy_driver:  # one topology per bank: driver and target always correspond
+        contenders.append(copy_driver_contender(model.config.window))
+
+    made = manifest.get("config", {})
+    notes = []
+    differs = [k for k in GENERATION_FIELDS if k in data_cfg and k in made and made[k] != data_cfg[k]]
+    if manifest.get("kind") == "synthetic" and differs:
+        notes.append(f"Note: the bank differs from the checkpoint's training data in {', '.join(differs)}; "
+                     "'seen' motions may not be the ones it was trained on.")
+        print(notes[-1], file=sys.stderr)
+    pairs = args.pairs or int(data_cfg.get("eval_pairs", made.get("eval_pairs", 1000)))
+    seed = args.seed if args.seed is not None else int(data_cfg.get("seed", made.get("seed", 0)))
+    shuffle = data_cfg.get("shuffle", "target")
+    center = data_cfg.get("center", "mesh")
+    bank = load_bank(bank_dir)
+
+    def make_sampler(window: int, shuffle_mode: str):
+        return PairSampler(bank, window=window, shuffle=shuffle_mode, center=center, seed=seed, eval_pairs=pairs)
+
+    samplers = Samplers(make_sampler, shuffle)
+    from tqdm import tqdm
+
+    steps = len(contenders) * (len(splits) + (len(levels) if levels else 0))
+    bar = tqdm(total=steps, unit="split", desc="evaluate", disable=args.no_progress, file=sys.stderr)
+    table = evaluate_table(contenders, samplers, splits, pairs=pairs, batch_size=args.batch_size, seed=seed,
+                           progress=lambda *_: bar.update(1))
+    sweep = None
+    if levels is not None:
+        sweep = noise_sweep(contenders, samplers, noise_split, levels, pairs=pairs, batch_size=args.batch_size,
+                            seed=seed, progress=lambda *_: bar.update(1))
+    bar.close()
+    seconds = time.perf_counter() - start
+
+    descriptions = {s: manifest["splits"][s].get("description", "") for s in splits}
+    notes.append(f"{pairs} pairs per split (seed {seed}, window as each model's, vertex shuffling "
+                 f"'{shuffle}'; copy-driver on the same pairs unshuffled). Checkpoint: {args.checkpoint} "
+                 f"(epoch {state.get('epoch')}); bank: {bank_dir.resolve()}.")
+    markdown = table_markdown(table, splits, descriptions, notes=notes)
+    if sweep is not None:
+        markdown += (f"\n**PMD (×10⁻⁴) vs uniform driver noise (± m), split `{noise_split}`**\n\n"
+                     + table_markdown({k: {f"{lv:g}": v for lv, v in row.items()} for k, row in sweep.items()},
+                                      [f"{lv:g}" for lv in levels], title=None)
+                     + "\n![PMD vs noise](noise.png)\n")
+    result = {"checkpoint": args.checkpoint, "bank": str(bank_dir.resolve()), "pairs": pairs, "seed": seed,
+              "splits": splits, "table": table, "seconds": seconds,
+              "noise": None if sweep is None else {"split": noise_split,
+                                                   "pmd": {k: {f"{lv:g}": v for lv, v in row.items()}
+                                                           for k, row in sweep.items()}}}
+
+    with staged_output_dir(out, args.overwrite) as tmp:
+        (tmp / "results.md").write_text(markdown)
+        (tmp / "results.csv").write_text(table_csv(table, splits))
+        (tmp / "results.json").write_text(json.dumps(result, indent=2) + "\n")
+        if sweep is not None:
+            (tmp / "noise.csv").write_text(sweep_csv(sweep))
+            plot_sweep(sweep, tmp / "noise.png", noise_split)
+        run_id = None
+        if not args.no_mlflow:
+            run_id = _log_to_mlflow(f"evaluate-{name}", args, tmp, table, sweep, pairs, seed, splits, config)
+
+    print(markdown.split("\n\n- ")[0].strip())
+    print(f"evaluated {len(contenders)} models x {len(splits)} splits x {pairs} pairs in {seconds:.1f} s")
+    print(f"results: {out / 'results.md'}, {out / 'results.csv'}" + (f", {out / 'noise.png'}" if sweep else ""))
+    if run_id:
+        from pipeline.tracking import tracking_uri
+
+        print(f"MLflow run: {run_id} (evaluate-{name}) in {tracking_uri()}")
+
+
+def _log_to_mlflow(job: str, args, files: Path, table, sweep, pairs, seed, splits, config) -> str:
+    quiet_mlflow()
+    from pipeline.tracking import start_job_run
+
+    params = {"evaluate": {"checkpoint": args.checkpoint, "bank": str(args.bank or ""), "pairs": pairs, "seed": seed,
+                           "splits": splits, "compare": args.compare, "noise": args.noise or ""}, **config}
+    try:
+        tracker = start_job_run(job, params, experiment=args.experiment)
+        status = "FAILED"
+        try:
+            metrics = {f"pmd_{split}.{_metric_name(row)}": value
+                       for row, values in table.items() for split, value in values.items()}
+            tracker.log_metrics(metrics, step=0)
+            if sweep is not None:
+                for i, level in enumerate(next(iter(sweep.values()))):
+                    tracker.log_metrics({f"pmd_noise.{_metric_name(row)}": values[level] for row, values in sweep.items()}
+                                        | {"noise_m": level}, step=i)
+            for path in sorted(files.iterdir()):
+                tracker.log_artifact(path, "evaluation")
+            source = RUN_ID.fullmatch(args.checkpoint)
+            if source and not Path(args.checkpoint).exists():
+                tracker.set_tags({"aniformer.source_run": source.group(1)})
+            status = "FINISHED"
+        finally:
+            tracker.end(status)
+    except UserError:
+        raise
+    except Exception as e:  # unreachable server, bad URI ...
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise UserError(f"MLflow logging failed ({first[:200]}); rerun with --no-mlflow to skip it") from None
+    return tracker.run_id
+
+
+def _metric_name(label: str) -> str:
+    return re.sub(r"[^0-9A-Za-z_\-.]+", "_", label)
+
+
+if __name__ == "__main__":
+    run(main)

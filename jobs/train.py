@@ -1,0 +1,106 @@
+"""Train AniFormer (or a baseline) with Ray Train, tracked in MLflow.
+
+    python jobs/train.py --config configs/default.yaml --out runs/default [train.epochs=20 ...]
+    ray job submit --working-dir . -- python jobs/train.py --config configs/tiny.yaml --out /abs/runs/tiny
+
+Without RAY_ADDRESS a local Ray instance is started (dashboard on 127.0.0.1 only); with it, or under
+`ray job submit`, the job runs on that cluster. The mesh bank is `--bank DIR` if given, else
+`OUT/bank`, generated there on first use. Running the same command again (same `--out` and job name)
+resumes from the latest checkpoint and continues the same MLflow run. Outputs: `OUT/best.pt`,
+`OUT/last.pt`, Ray's checkpoints under `OUT/ray/NAME`, and the MLflow run (printed at the end).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import signal
+import sys
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from aniformer.cli import UserError, load_config, run  # noqa: E402
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="train.py", description=__doc__.split("\n\n")[0])
+    p.add_argument("--config", required=True, metavar="FILE")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (checkpoints, bank)")
+    p.add_argument("--name", default=None, help="job name: MLflow run and Ray run (default: OUT's name)")
+    p.add_argument("--bank", default=None, metavar="DIR", help="an existing mesh bank (default: OUT/bank)")
+    p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
+    p.add_argument("overrides", nargs="*", metavar="key=value")
+    try:
+        return p.parse_args(argv)
+    except SystemExit as e:  # argparse already printed its one-line usage error
+        if e.code:
+            raise UserError("bad arguments (see --help)") from None
+        raise
+
+
+def _prepare_bank(spec, bank: Path, generate: bool):
+    from pipeline.data import check_bank_matches, generate_bank, read_manifest
+
+    if (bank / "manifest.json").is_file():
+        manifest = read_manifest(bank)
+        check_bank_matches(manifest, spec.data)
+        return manifest
+    if not generate:
+        raise UserError(f"--bank {bank}: no mesh bank there (make one with jobs/generate_data.py)")
+    print(f"generating the mesh bank into {bank} ...", flush=True)
+    return generate_bank(spec.data, bank)
+
+
+def main(argv: list[str]) -> None:
+    args = parse_args(argv)
+    config = load_config(args.config, args.overrides)
+    from pipeline.train import RunSpec
+
+    spec = RunSpec.from_config(config)  # bad config: one line before anything starts
+    out = Path(args.out).resolve()
+    name = args.name or out.name
+    bank = Path(args.bank).resolve() if args.bank else out / "bank"
+    out.mkdir(parents=True, exist_ok=True)
+
+    import numpy as np
+
+    from pipeline.cluster import connect
+    from pipeline.tracking import CHECKPOINT_ARTIFACT, quiet_mlflow, start_job_run
+    from pipeline.train import best_checkpoint, fit
+
+    quiet_mlflow()
+    connect()
+    manifest = _prepare_bank(spec, bank, generate=args.bank is None)
+    faces = np.load(bank / "faces.npy") if (bank / "faces.npy").is_file() else np.asarray(manifest["faces"])
+    tracker = start_job_run(name, spec.to_dict(), experiment=args.experiment)
+    # `ray job stop` and kill send SIGTERM: end the MLflow run as KILLED rather than leave it RUNNING.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    status = "FAILED"
+    try:
+        result = fit(spec, bank, out / "ray", name, tracker, faces)
+        if result.error:
+            raise UserError(f"training failed: {type(result.error).__name__}: {str(result.error).splitlines()[0]}")
+        best = best_checkpoint(result)
+        with best.as_directory() as d:
+            shutil.copyfile(Path(d) / "checkpoint.pt", out / "best.pt")
+        with result.checkpoint.as_directory() as d:
+            shutil.copyfile(Path(d) / "checkpoint.pt", out / "last.pt")
+        tracker.log_artifact(out / "best.pt", CHECKPOINT_ARTIFACT.rsplit("/", 1)[0])
+        status = "FINISHED"
+    except (KeyboardInterrupt, SystemExit):
+        status = "KILLED"
+        raise
+    finally:
+        tracker.end(status)
+    metrics = result.metrics or {}
+    print(f"trained {name}: epoch {metrics.get('epoch')}, PMD seen {metrics.get('pmd_seen', float('nan')):.3f}, "
+          f"unseen {metrics.get('pmd_unseen', float('nan')):.3f} (x1e-4)")
+    print(f"checkpoints: {out / 'best.pt'} (best unseen PMD), {out / 'last.pt'}")
+    print(f"MLflow run: {tracker.run_id} in {tracker.uri}")
+    print(f"  compare runs: mlflow ui --backend-store-uri {tracker.uri}")
+
+
+if __name__ == "__main__":
+    run(main)

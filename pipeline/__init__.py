@@ -1,0 +1,1 @@
+"""Ray (and MLflow) glue around the pure-PyTorch `aniformer` package."""

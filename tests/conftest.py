@@ -1,0 +1,71 @@
+"""Shared fixtures: one real local multi-node Ray cluster of CPU workers per pytest session.
+
+``ray_cluster`` starts a head node and one worker node (1 CPU each: 2 in all, what a 2-core
+machine can run) with ``ray.cluster_utils.Cluster``, connects this process with
+``ray.init(address=cluster.address)`` once and shuts everything down at the end of the session.
+Tests may add or remove nodes on the yielded ``Cluster`` (``add_node``/``remove_node``); they
+must leave it as they found it. ``ray_address`` gives the address for subprocesses
+(``RAY_ADDRESS=...``), so jobs run as scripts join the same cluster instead of starting their own.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run from a checkout without `pip install -e .`
+    sys.path.insert(0, str(ROOT))
+
+NODE_CPUS = 1
+OBJECT_STORE_BYTES = 512 * 1024**2
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def ray_cluster():
+    """The session's local Ray cluster (head + 1 worker node, 1 CPU each), already connected."""
+    import ray
+    from ray.cluster_utils import Cluster
+
+    os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    cluster = Cluster(
+        initialize_head=True,
+        head_node_args={
+            "num_cpus": NODE_CPUS,
+            "object_store_memory": OBJECT_STORE_BYTES,
+            # Ray Train's controller wants the dashboard; bind it to localhost only.
+            "include_dashboard": True,
+            "dashboard_host": "127.0.0.1",
+            "dashboard_port": _free_port(),  # 8265 may belong to another Ray on this machine
+        },
+    )
+    cluster.add_node(num_cpus=NODE_CPUS, object_store_memory=OBJECT_STORE_BYTES)
+    cluster.wait_for_nodes()
+    ray.init(address=cluster.address)
+    try:
+        yield cluster
+    finally:
+        ray.shutdown()
+        cluster.shutdown()
+
+
+@pytest.fixture(scope="session")
+def ray_address(ray_cluster) -> str:
+    """Address of the session cluster, for ``RAY_ADDRESS`` in subprocesses."""
+    return ray_cluster.address
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return ROOT

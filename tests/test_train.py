@@ -1,0 +1,163 @@
+"""Distributed training on the session's real multi-node Ray cluster, through `jobs/train.py`.
+
+Every test runs the job as a subprocess with RAY_ADDRESS set to the session cluster, the way
+`ray job submit` runs it, and an MLflow sqlite store of its own.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+from aniformer.checkpoint import KEYS, load_checkpoint, model_from_checkpoint
+
+pytestmark = [pytest.mark.slow, pytest.mark.ray]
+
+TWO_WORKERS = ["train.workers=2", "train.cpus_per_worker=0.5"]
+
+
+@pytest.fixture(scope="module")
+def tiny_bank(tmp_path_factory, ray_cluster, repo_root):
+    from aniformer.cli import load_config
+    from pipeline.data import data_config, generate_bank
+
+    bank = tmp_path_factory.mktemp("train") / "bank"
+    generate_bank(data_config(load_config(repo_root / "configs/tiny.yaml")), bank, progress=False)
+    return bank
+
+
+def start_job(repo_root, ray_address, out: Path, bank: Path, *overrides: str) -> subprocess.Popen:
+    env = {**os.environ, "RAY_ADDRESS": ray_address,
+           "MLFLOW_TRACKING_URI": f"sqlite:///{out.parent / 'mlflow.db'}"}
+    cmd = [sys.executable, str(repo_root / "jobs/train.py"), "--config", str(repo_root / "configs/tiny.yaml"),
+           "--out", str(out), "--bank", str(bank), *overrides]
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            cwd=out.parent)
+
+
+def finish(job: subprocess.Popen, timeout: float = 420) -> str:
+    output, _ = job.communicate(timeout=timeout)
+    assert job.returncode == 0, output[-3000:]
+    return output
+
+
+def wait_for_checkpoint(out: Path, job: subprocess.Popen, timeout: float = 300) -> None:
+    deadline = time.time() + timeout
+    while not list((out / "ray").glob("*/checkpoint_*/checkpoint.pt")):
+        assert job.poll() is None, job.communicate()[0][-3000:]
+        assert time.time() < deadline, "no checkpoint appeared"
+        time.sleep(0.5)
+
+
+def wait_for_epoch(out: Path, job: subprocess.Popen, epoch: int, timeout: float = 400) -> None:
+    """Until the job's MLflow run has logged `epoch` (so the checkpoint of epoch - 1 is registered)."""
+    deadline = time.time() + timeout
+    while True:
+        assert job.poll() is None, job.communicate()[0][-3000:]
+        assert time.time() < deadline, f"epoch {epoch} was not reached"
+        if (out.parent / "mlflow.db").exists():
+            client, runs = job_runs(out)
+            if runs and any(v >= epoch for _, v in logged(client, runs[0], "epoch")):
+                return
+        time.sleep(1)
+
+
+def job_runs(out: Path):
+    client = MlflowClient(f"sqlite:///{out.parent / 'mlflow.db'}")
+    experiment = client.get_experiment_by_name("aniformer")
+    if experiment is None:
+        return client, []
+    return client, client.search_runs([experiment.experiment_id], filter_string=f"tags.`aniformer.job` = '{out.name}'")
+
+
+def logged(client, run, key) -> list[tuple[int, float]]:
+    return [(m.step, m.value) for m in client.get_metric_history(run.info.run_id, key)]
+
+
+def test_two_worker_ddp_on_two_nodes_is_tracked_in_mlflow(tmp_path, tiny_bank, ray_address, repo_root):
+    out = tmp_path / "ddp"
+    output = finish(start_job(repo_root, ray_address, out, tiny_bank, *TWO_WORKERS,
+                              "train.placement_strategy=STRICT_SPREAD", "train.epochs=2", "train.render_every=1"))
+    assert str(out / "best.pt") in output and "MLflow run:" in output
+    state = load_checkpoint(out / "best.pt")
+    assert set(KEYS) <= set(state) and state["epoch"] >= 1
+    model, _ = model_from_checkpoint(out / "last.pt")
+    assert load_checkpoint(out / "last.pt")["epoch"] == 2
+
+    client, runs = job_runs(out)
+    assert len(runs) == 1
+    run = runs[0]
+    assert run.info.status == "FINISHED"
+    assert run.data.tags["world_size"] == "2"
+    assert run.data.params["model.name"] == "aniformer" and "train.lr" in run.data.params
+    for key in ("loss", "loss_rec", "loss_motion", "loss_appearance", "pmd_seen", "pmd_unseen",
+                "samples_per_s", "peak_memory_gb"):
+        assert [step for step, _ in logged(client, run, key)] == [1, 2], key
+    artifacts = {a.path for a in client.list_artifacts(run.info.run_id, "filmstrips")}
+    assert artifacts == {"filmstrips/epoch_0001.png", "filmstrips/epoch_0002.png"}
+    assert [a.path for a in client.list_artifacts(run.info.run_id, "checkpoints")] == ["checkpoints/best.pt"]
+
+
+def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_bank, ray_cluster, ray_address,
+                                                                   repo_root):
+    out = tmp_path / "fault"
+    victim = next(node for node in ray_cluster.list_all_nodes() if node is not ray_cluster.head_node)
+    # STRICT_SPREAD: one training worker is on each node, so one of them dies with `victim`.
+    job = start_job(repo_root, ray_address, out, tiny_bank, *TWO_WORKERS, "train.placement_strategy=STRICT_SPREAD",
+                    "train.epochs=4", "train.max_failures=3")
+    try:
+        wait_for_epoch(out, job, 2)
+        ray_cluster.remove_node(victim)
+    finally:
+        ray_cluster.add_node(num_cpus=1, object_store_memory=victim.object_store_memory
+                             if hasattr(victim, "object_store_memory") else 512 * 1024**2)
+        ray_cluster.wait_for_nodes()
+    finish(job)
+
+    client, (run,) = job_runs(out)
+    resumed = logged(client, run, "resumed_from_epoch")
+    assert resumed and resumed[0][1] >= 1, "training did not restore from a checkpoint"
+    epochs = [value for _, value in logged(client, run, "epoch")]
+    # The epoch in flight at the kill may be redone; nothing before the restored checkpoint is.
+    assert epochs.count(1.0) == 1, f"the epoch counter restarted: {epochs}"
+    assert sorted(set(epochs)) == [1.0, 2.0, 3.0, 4.0], epochs
+    assert epochs[-1] == 4 and load_checkpoint(out / "last.pt")["epoch"] == 4
+    assert run.info.status == "FINISHED"
+
+
+def test_interrupted_driver_resumes_when_run_again(tmp_path, tiny_bank, ray_address, repo_root):
+    out = tmp_path / "resume"
+    job = start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=4")
+    wait_for_checkpoint(out, job)
+    job.send_signal(signal.SIGINT)
+    output, _ = job.communicate(timeout=120)
+    assert job.returncode != 0, output[-2000:]
+    client, (run,) = job_runs(out)
+    assert run.info.status == "KILLED"  # never left RUNNING
+
+    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=4"))
+    client, runs = job_runs(out)
+    assert len(runs) == 1 and runs[0].info.status == "FINISHED"  # the same MLflow run, continued
+    resumed = logged(client, runs[0], "resumed_from_epoch")
+    assert resumed and resumed[0][1] >= 1
+    assert load_checkpoint(out / "last.pt")["epoch"] == 4
+
+
+def test_bad_config_fails_with_one_line_before_starting_ray(tmp_path, repo_root):
+    for override, message in [("train.epochs=0", "epochs must be >= 1"),
+                              ("model.attention=both", "attention must be one of"),
+                              ("model.name=limp", "unknown name"),
+                              ("train.wings=3", "unknown key(s) in [train]")]:
+        run = subprocess.run([sys.executable, str(repo_root / "jobs/train.py"), "--config",
+                              str(repo_root / "configs/tiny.yaml"), "--out", str(tmp_path / "x"), override],
+                             capture_output=True, text=True, timeout=120, env={**os.environ, "RAY_ADDRESS": ""})
+        assert run.returncode == 2, run.stderr
+        assert run.stderr.strip().count("\n") == 0 and message in run.stderr, run.stderr
+        assert not (tmp_path / "x").exists()
