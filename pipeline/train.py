@@ -259,7 +259,8 @@ def fit(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracke
                                      resources_per_worker={"CPU": cfg.cpus_per_worker},
                                      placement_strategy=cfg.placement_strategy),
         datasets=datasets,
-        dataset_config=DataConfig(datasets_to_split=["train"]),
+        # One worker reads the whole stream: skip the split coordinator (half a core on a 2-core machine).
+        dataset_config=DataConfig(datasets_to_split=["train"] if cfg.workers > 1 else []),
         run_config=RunConfig(
             name=name,
             storage_path=str(storage),

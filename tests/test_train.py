@@ -58,14 +58,14 @@ def wait_for_checkpoint(out: Path, job: subprocess.Popen, timeout: float = 300) 
 
 def wait_for_epoch(out: Path, job: subprocess.Popen, epoch: int, timeout: float = 400) -> None:
     """Until the job's MLflow run has logged `epoch` (so the checkpoint of epoch - 1 is registered)."""
+    wait_for_checkpoint(out, job)  # by then the job has created the MLflow tables: no migration race
     deadline = time.time() + timeout
     while True:
         assert job.poll() is None, job.communicate()[0][-3000:]
         assert time.time() < deadline, f"epoch {epoch} was not reached"
-        if (out.parent / "mlflow.db").exists():
-            client, runs = job_runs(out)
-            if runs and any(v >= epoch for _, v in logged(client, runs[0], "epoch")):
-                return
+        client, runs = job_runs(out)
+        if runs and any(v >= epoch for _, v in logged(client, runs[0], "epoch")):
+            return
         time.sleep(1)
 
 
