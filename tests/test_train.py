@@ -111,10 +111,10 @@ def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_
     victim = next(node for node in ray_cluster.list_all_nodes() if node is not ray_cluster.head_node)
     # STRICT_SPREAD: one training worker is on each node, so one of them dies with `victim`.
     job = start_job(repo_root, ray_address, out, tiny_bank, *TWO_WORKERS, "train.placement_strategy=STRICT_SPREAD",
-                    "train.epochs=4", "train.max_failures=3")
+                    "train.epochs=6", "train.max_failures=3")
     try:
         wait_for_epoch(out, job, 2)
-        ray_cluster.remove_node(victim)
+        ray_cluster.remove_node(victim, allow_graceful=False)  # SIGKILL, like a lost machine
     finally:
         ray_cluster.add_node(num_cpus=1, object_store_memory=victim.object_store_memory
                              if hasattr(victim, "object_store_memory") else 512 * 1024**2)
@@ -127,8 +127,8 @@ def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_
     epochs = [value for _, value in logged(client, run, "epoch")]
     # The epoch in flight at the kill may be redone; nothing before the restored checkpoint is.
     assert epochs.count(1.0) == 1, f"the epoch counter restarted: {epochs}"
-    assert sorted(set(epochs)) == [1.0, 2.0, 3.0, 4.0], epochs
-    assert epochs[-1] == 4 and load_checkpoint(out / "last.pt")["epoch"] == 4
+    assert sorted(set(epochs)) == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0], epochs
+    assert epochs[-1] == 6 and load_checkpoint(out / "last.pt")["epoch"] == 6
     assert run.info.status == "FINISHED"
 
 
