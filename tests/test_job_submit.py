@@ -68,11 +68,15 @@ def test_ray_start_head_and_job_submit_of_the_training_job(tmp_path, repo_root):
 
         out = tmp_path / "run"
         runtime_env = {"env_vars": {"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}}
-        submit = subprocess.run(
-            [str(bin_dir / "ray"), "job", "submit", "--address", address, "--working-dir", str(repo_root),
-             "--runtime-env-json", json.dumps(runtime_env), "--",
-             "python", "jobs/train.py", "--config", "configs/tiny.yaml", "--out", str(out)],
-            env=env, capture_output=True, text=True, timeout=900)
+        for _ in range(30):  # the head's job agent registers a little after the dashboard answers
+            submit = subprocess.run(
+                [str(bin_dir / "ray"), "job", "submit", "--address", address, "--working-dir", str(repo_root),
+                 "--runtime-env-json", json.dumps(runtime_env), "--",
+                 "python", "jobs/train.py", "--config", "configs/tiny.yaml", "--out", str(out)],
+                env=env, capture_output=True, text=True, timeout=900)
+            if "No available agent to submit job" not in submit.stdout + submit.stderr:
+                break
+            time.sleep(2)
         assert "succeeded" in submit.stdout, submit.stdout[-3000:] + submit.stderr[-2000:]
         assert (out / "best.pt").is_file() and (tmp_path / "mlflow.db").is_file()
     finally:

@@ -42,13 +42,13 @@ def start_job(repo_root, ray_address, out: Path, bank: Path, *overrides: str) ->
                             cwd=out.parent)
 
 
-def finish(job: subprocess.Popen, timeout: float = 420) -> str:
+def finish(job: subprocess.Popen, timeout: float = 900) -> str:
     output, _ = job.communicate(timeout=timeout)
     assert job.returncode == 0, output[-3000:]
     return output
 
 
-def wait_for_checkpoint(out: Path, job: subprocess.Popen, timeout: float = 300) -> None:
+def wait_for_checkpoint(out: Path, job: subprocess.Popen, timeout: float = 600) -> None:
     deadline = time.time() + timeout
     while not list((out / "ray").glob("*/checkpoint_*/checkpoint.pt")):
         assert job.poll() is None, job.communicate()[0][-3000:]
@@ -56,7 +56,7 @@ def wait_for_checkpoint(out: Path, job: subprocess.Popen, timeout: float = 300) 
         time.sleep(0.5)
 
 
-def wait_for_epoch(out: Path, job: subprocess.Popen, epoch: int, timeout: float = 400) -> None:
+def wait_for_epoch(out: Path, job: subprocess.Popen, epoch: int, timeout: float = 600) -> None:
     """Until the job's MLflow run has logged `epoch` (so the checkpoint of epoch - 1 is registered)."""
     wait_for_checkpoint(out, job)  # by then the job has created the MLflow tables: no migration race
     deadline = time.time() + timeout
