@@ -7,6 +7,7 @@ on stderr and exit status 2 (the convention of argparse itself).
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import dataclasses
 import os
@@ -22,6 +23,13 @@ import yaml
 
 class UserError(Exception):
     """Bad input the user can fix: reported as one line, exit status 2."""
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse whose usage errors are a `UserError` (one line, exit 2 through `run`)."""
+
+    def error(self, message):
+        raise UserError(f"{message} (see --help)")
 
 
 def load_config(path: str | os.PathLike | None, overrides: list[str] = ()) -> dict:

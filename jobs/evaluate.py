@@ -28,17 +28,12 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import UserError, check_output_dir, run, staged_output_dir  # noqa: E402
+from aniformer.cli import ArgumentParser, UserError, check_output_dir, run, staged_output_dir  # noqa: E402
 from pipeline.tracking import RUN_ID, quiet_mlflow, resolve_checkpoint  # noqa: E402
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, exit 2 (through aniformer.cli.run)
-        raise UserError(f"{message} (see --help)")
-
-
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    p = _Parser(prog="evaluate.py", description=__doc__.split("\n\n")[0],
+    p = ArgumentParser(prog="evaluate.py", description=__doc__.split("\n\n")[0],
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--checkpoint", required=True, metavar="CKPT", help="checkpoint file or MLflow run id")
     p.add_argument("--out", required=True, metavar="DIR", help="directory for the tables and plots")

@@ -22,16 +22,11 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import UserError, check_output_dir, load_config, run, staged_output_dir  # noqa: E402
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, exit 2 (through aniformer.cli.run)
-        raise UserError(f"{message} (see --help)")
+from aniformer.cli import ArgumentParser, UserError, check_output_dir, load_config, run, staged_output_dir  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    p = _Parser(prog="generate_data.py", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="generate_data.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--config", required=True, metavar="FILE", help="YAML config with a data: section")
     p.add_argument("--out", required=True, metavar="DIR", help="bank directory to create")
     p.add_argument("--overwrite", action="store_true", help="replace an existing non-empty DIR")

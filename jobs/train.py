@@ -21,23 +21,18 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import UserError, load_config, run  # noqa: E402
+from aniformer.cli import ArgumentParser, UserError, load_config, run  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="train.py", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="train.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--config", required=True, metavar="FILE")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (checkpoints, bank)")
     p.add_argument("--name", default=None, help="job name: MLflow run and Ray run (default: OUT's name)")
     p.add_argument("--bank", default=None, metavar="DIR", help="an existing mesh bank (default: OUT/bank)")
     p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
     p.add_argument("overrides", nargs="*", metavar="key=value")
-    try:
-        return p.parse_args(argv)
-    except SystemExit as e:  # argparse already printed its one-line usage error
-        if e.code:
-            raise UserError("bad arguments (see --help)") from None
-        raise
+    return p.parse_args(argv)
 
 
 def _prepare_bank(spec, bank: Path, generate: bool):
