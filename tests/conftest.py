@@ -48,6 +48,9 @@ def ray_cluster():
             "include_dashboard": True,
             "dashboard_host": "127.0.0.1",
             "dashboard_port": _free_port(),  # 8265 may belong to another Ray on this machine
+            # The head's dashboard agent defaults to 52365; a second head on this machine (the job
+            # submission tests' `ray start --head`) would lose its agent and refuse every job.
+            "dashboard_agent_listen_port": _free_port(),
         },
     )
     cluster.add_node(num_cpus=NODE_CPUS, object_store_memory=OBJECT_STORE_BYTES)
