@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import dataclasses
 import os
 import shutil
 import sys
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +33,7 @@ class ArgumentParser(argparse.ArgumentParser):
         raise UserError(f"{message} (see --help)")
 
 
-def load_config(path: str | os.PathLike | None, overrides: list[str] = ()) -> dict:
+def load_config(path: str | os.PathLike | None, overrides: Sequence[str] = ()) -> dict:
     """Read a YAML config and apply dotted `key=value` overrides (values parsed as YAML)."""
     config: dict = {}
     if path is not None:
@@ -45,8 +46,15 @@ def load_config(path: str | os.PathLike | None, overrides: list[str] = ()) -> di
             raise UserError(f"config {path} is not valid YAML: {str(e).splitlines()[0]}") from None
         if not isinstance(config, dict):
             raise UserError(f"config {path} must be a mapping at the top level")
+    return apply_overrides(config, overrides)
+
+
+def apply_overrides(config: dict, overrides: Sequence[str]) -> dict:
+    """`config` (a deep copy) with dotted `key=value` overrides applied; a whole section may be
+    replaced too (`model={name: npt, channels: [64, 32]}`)."""
+    config = copy.deepcopy(config)
     for item in overrides:
-        key, sep, raw = item.partition("=")
+        key, sep, raw = str(item).partition("=")
         if not sep or not key:
             raise UserError(f"override {item!r} is not of the form key=value")
         try:

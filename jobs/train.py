@@ -13,7 +13,6 @@ resumes from the latest checkpoint and continues the same MLflow run. Outputs: `
 from __future__ import annotations
 
 import argparse
-import shutil
 import signal
 import sys
 from pathlib import Path
@@ -21,7 +20,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import ArgumentParser, UserError, load_config, run  # noqa: E402
+from aniformer.cli import ArgumentParser, load_config, run  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -35,19 +34,6 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def _prepare_bank(spec, bank: Path, generate: bool):
-    from pipeline.data import check_bank_matches, generate_bank, read_manifest
-
-    if (bank / "manifest.json").is_file():
-        manifest = read_manifest(bank)
-        check_bank_matches(manifest, spec.data)
-        return manifest
-    if not generate:
-        raise UserError(f"--bank {bank}: no mesh bank there (make one with jobs/generate_data.py)")
-    print(f"generating the mesh bank into {bank} ...", flush=True)
-    return generate_bank(spec.data, bank)
-
-
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
     config = load_config(args.config, args.overrides)
@@ -59,30 +45,20 @@ def main(argv: list[str]) -> None:
     bank = Path(args.bank).resolve() if args.bank else out / "bank"
     out.mkdir(parents=True, exist_ok=True)
 
-    import numpy as np
-
     from pipeline.cluster import connect
-    from pipeline.tracking import CHECKPOINT_ARTIFACT, quiet_mlflow, start_job_run
-    from pipeline.train import best_checkpoint, fit
+    from pipeline.data import prepare_bank
+    from pipeline.tracking import quiet_mlflow, start_job_run
+    from pipeline.train import train_job
 
     quiet_mlflow()
     connect()
-    manifest = _prepare_bank(spec, bank, generate=args.bank is None)
-    faces = np.load(bank / "faces.npy") if (bank / "faces.npy").is_file() else np.asarray(manifest["faces"])
+    _, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
     tracker = start_job_run(name, spec.to_dict(), experiment=args.experiment)
     # `ray job stop` and kill send SIGTERM: end the MLflow run as KILLED rather than leave it RUNNING.
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     status = "FAILED"
     try:
-        result = fit(spec, bank, out / "ray", name, tracker, faces)
-        if result.error:
-            raise UserError(f"training failed: {type(result.error).__name__}: {str(result.error).splitlines()[0]}")
-        best = best_checkpoint(result)
-        with best.as_directory() as d:
-            shutil.copyfile(Path(d) / "checkpoint.pt", out / "best.pt")
-        with result.checkpoint.as_directory() as d:
-            shutil.copyfile(Path(d) / "checkpoint.pt", out / "last.pt")
-        tracker.log_artifact(out / "best.pt", CHECKPOINT_ARTIFACT.rsplit("/", 1)[0])
+        result = train_job(spec, bank, out, name, tracker, faces)
         status = "FINISHED"
     except (KeyboardInterrupt, SystemExit):
         status = "KILLED"

@@ -975,6 +975,21 @@ def check_bank_matches(manifest: dict, cfg: DataConfig) -> None:
         raise UserError(f"the bank was generated with other data settings: {shown}; regenerate it or fix the config")
 
 
+def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool) -> tuple[dict, np.ndarray]:
+    """(manifest, faces) of the bank a job trains on: checked against ``cfg`` if it exists, else
+    generated there when ``generate`` (the job's own ``OUT/bank``), else a `UserError`."""
+    bank_dir = Path(bank_dir)
+    if (bank_dir / MANIFEST).is_file():
+        manifest = read_manifest(bank_dir)
+        check_bank_matches(manifest, cfg)
+    elif generate:
+        print(f"generating the mesh bank into {bank_dir} ...", flush=True)
+        manifest = generate_bank(cfg, bank_dir)
+    else:
+        raise UserError(f"--bank {bank_dir}: no mesh bank there (make one with jobs/generate_data.py)")
+    return manifest, np.load(bank_dir / manifest["faces"], allow_pickle=False)
+
+
 # --------------------------------------------------------------------------------------------
 # Pairs (numpy)
 # --------------------------------------------------------------------------------------------

@@ -275,3 +275,21 @@ def fit(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracke
 def best_checkpoint(result: ray.train.Result) -> ray.train.Checkpoint:
     scored = [(m[SCORE], c) for c, m in (result.best_checkpoints or []) if math.isfinite(m.get(SCORE, math.nan))]
     return min(scored, key=lambda x: x[0])[1] if scored else result.checkpoint
+
+
+def train_job(spec: RunSpec, bank_dir: Path, out: Path, name: str, tracker: Tracker,
+              faces: np.ndarray) -> ray.train.Result:
+    """A training job's work (jobs/train.py, each ablation variant): `fit` with Ray's checkpoints under
+    `out/ray`, then `out/best.pt` (best unseen PMD) and `out/last.pt`, the best logged to the run."""
+    import shutil
+
+    from pipeline.tracking import CHECKPOINT_ARTIFACT
+
+    result = fit(spec, bank_dir, out / "ray", name, tracker, faces)
+    if result.error:
+        raise UserError(f"training failed: {type(result.error).__name__}: {str(result.error).splitlines()[0]}")
+    for checkpoint, filename in ((best_checkpoint(result), "best.pt"), (result.checkpoint, "last.pt")):
+        with checkpoint.as_directory() as directory:
+            shutil.copyfile(Path(directory) / FILENAME, out / filename)
+    tracker.log_artifact(out / "best.pt", CHECKPOINT_ARTIFACT.rsplit("/", 1)[0])
+    return result
