@@ -1,0 +1,114 @@
+"""Sweep the loss weights and the window length with Ray Tune under a per-worker memory limit.
+
+    python jobs/sweep.py --config configs/sweep_tiny.yaml --out runs/sweep_tiny [sweep.num_samples=8 ...]
+    mlflow ui --backend-store-uri sqlite:///mlflow.db      # compare the trials (children of the sweep run)
+
+The config is a run config (data/model/loss/train, as for jobs/train.py) plus a `sweep:` section
+(see pipeline/tune.py `SweepConfig`). Trials predicted over `sweep.memory_limit_gb` run with a
+smaller batch and gradient accumulation, or are skipped, before anything is built. Outputs:
+`OUT/summary.csv` (one row per trial), the Tune experiment under `OUT/tune/NAME`, each trial's
+checkpoints under `OUT/trials/`, and the MLflow runs (a parent per sweep, a child per trial).
+Running the same command again after an interruption restores the sweep: finished trials are kept,
+only the unfinished ones run. Without RAY_ADDRESS a local Ray instance is started.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from aniformer.cli import ArgumentParser, load_config, run  # noqa: E402
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    p = ArgumentParser(prog="sweep.py", description=__doc__.split("\n\n")[0])
+    p.add_argument("--config", required=True, metavar="FILE")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (summary.csv, tune/, trials/)")
+    p.add_argument("--name", default=None, help="sweep name: MLflow parent run and Tune experiment (default: OUT's name)")
+    p.add_argument("--bank", default=None, metavar="DIR", help="an existing mesh bank (default: OUT/bank)")
+    p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
+    p.add_argument("overrides", nargs="*", metavar="key=value")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str]) -> None:
+    args = parse_args(argv)
+    config = load_config(args.config, args.overrides)
+    from pipeline.train import RunSpec
+    from pipeline.tune import apply_params, split_config
+
+    base, sweep = split_config(config)
+    spec = RunSpec.from_config(base)  # bad config: one line before anything starts
+    for window in sweep.window:  # both ends of the window range must make valid runs
+        RunSpec.from_config(apply_params(base, {"window": window}))
+    out = Path(args.out).resolve()
+    name = args.name or out.name
+    bank = Path(args.bank).resolve() if args.bank else out / "bank"
+    out.mkdir(parents=True, exist_ok=True)
+
+    from pipeline.cluster import connect
+    from pipeline.data import prepare_bank
+    from pipeline.tracking import Tracker, start_job_run, tracking_uri
+    from pipeline.tune import best_row, build_tuner, experiment_exists, summarize, unfinished_trials, write_summary
+
+    connect()
+    manifest, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
+    restore = experiment_exists(out, name)
+    parent = start_job_run(name, {**spec.to_dict(), "sweep": sweep.to_dict()}, experiment=args.experiment)
+    parent.set_tags({"kind": "sweep", "sweep.search": sweep.search,
+                     "memory_limit_gb": sweep.memory_limit_gb or "none"})
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    status, unfinished = "FAILED", []
+    try:
+        print(("restoring" if restore else "starting") + f" sweep {name} in {out / 'tune' / name}", flush=True)
+        tuner = build_tuner(base, sweep, sweep_name=name, out=out, bank=bank, experiment=args.experiment,
+                            parent_run_id=parent.run_id, faces=faces, vertices=int(manifest["num_vertices"]),
+                            restore=restore)
+        results = tuner.fit()
+        unfinished = unfinished_trials(out / "tune" / name, sweep.num_samples)
+        rows = summarize(results, sweep, spec.train.epochs)
+        summary = write_summary(rows, out / "summary.csv")
+        parent.log_artifact(summary)
+        for row in rows:  # an interrupted trial's child run: KILLED (resumed by the next run)
+            if row["trial_id"] in unfinished and row["mlflow_run_id"]:
+                child = Tracker(tracking_uri(), row["mlflow_run_id"])
+                child.set_tags({"status": "interrupted"})
+                child.end("KILLED")
+        best = best_row(rows)
+        if best and not unfinished:
+            Tracker(tracking_uri(), best["mlflow_run_id"]).set_tags({"best": "true"})
+            parent.set_tags({"best_trial_id": best["trial_id"], "best_run_id": best["mlflow_run_id"],
+                             "best_pmd_unseen": best["best_pmd_unseen"]})
+            parent.log_metrics({"best_pmd_unseen": best["best_pmd_unseen"]}, step=0)
+        counts = {}
+        for row in rows:
+            counts[row["status"]] = counts.get(row["status"], 0) + 1
+        parent.set_tags({f"trials.{k}": v for k, v in counts.items()})
+        status = "KILLED" if unfinished else "FINISHED"
+    except (KeyboardInterrupt, SystemExit):
+        status = "KILLED"
+        raise
+    finally:
+        parent.end(status)
+    shown = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
+    print(f"sweep {name}: {len(rows)} trials ({shown})")
+    print(f"summary: {summary}")
+    if best and not unfinished:
+        print(f"best trial {best['trial_id']}: PMD unseen {best['best_pmd_unseen']} (x1e-4), "
+              f"rec={best['rec']:.3g} motion={best['motion']:.3g} appearance={best['appearance']:.3g} "
+              f"window={best['window']}")
+    print(f"MLflow parent run: {parent.run_id} in {parent.uri}")
+    print(f"  compare trials: mlflow ui --backend-store-uri {parent.uri}")
+    if unfinished:
+        print(f"interrupted: {len(unfinished)} trial(s) unfinished; run the same command again to resume",
+              file=sys.stderr)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    run(main)

@@ -1,0 +1,469 @@
+"""Ray Tune sweeps over the loss weights (eq. 6) and the window length, gated by predicted memory.
+
+A sweep samples `loss.rec`, `loss.motion`, `loss.appearance` (log-uniform), the window T (data and
+model) and optionally `train.lr` / `train.batch_size`, with Optuna's TPE (`search: optuna`) or
+Ray's random search (`search: random`), and stops poor trials early with ASHA on the validation
+PMD (`pmd_unseen`, per epoch). Every trial trains with `pipeline.train.train_func`, the loop of
+jobs/train.py, in a TorchTrainer run inside a function trainable (Ray 2.60 Train V2 cannot be
+passed to a Tuner directly), whose epoch reports reach Tune through `TuneReportCallback`.
+
+Memory gate: before a trial builds anything, `aniformer.memory.plan_batch` predicts its
+per-worker peak. Over `memory_limit_gb` the batch is halved, with gradient accumulation keeping
+the effective batch, until it fits (`adjusted_memory`); if it cannot fit (not even batch 1, or it
+would need more than `max_grad_accumulation`) the trial is reported as `skipped_memory` without
+being launched. The decision goes into every Tune result of the trial and into its MLflow run.
+
+MLflow: one parent run per sweep (job = sweep name), one child run per trial (job =
+`<sweep>-<trial_id>`) that receives the training curves; tags `status`, `predicted_memory_gb`,
+`measured_memory_gb`, `best_pmd_unseen`; the best trial is tagged `best=true` (and named on the
+parent). A driver-side Tune callback ends every child run (ASHA-stopped ones too), so no run is
+left RUNNING.
+
+Restore: the Tune experiment lives in `OUT/tune/<sweep>`; running the same sweep again restores it
+with `Tuner.restore` (finished trials are kept, not rerun; unfinished ones restart and their
+TorchTrainer resumes from its last checkpoint under `OUT/trials/<sweep>-<trial_id>`).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from ray.tune import Callback
+from ray.tune.integration.ray_train import TuneReportCallback
+
+from aniformer.cli import UserError, from_dict
+from aniformer.memory import plan_batch
+from pipeline.tracking import Tracker, tracking_uri
+
+STATUSES = ("ok", "adjusted_memory", "skipped_memory", "early_stopped", "failed")
+SEARCHES = ("optuna", "random")
+# tune parameter -> the config keys it sets
+PARAMS = {"rec": ("loss.rec",), "motion": ("loss.motion",), "appearance": ("loss.appearance",),
+          "window": ("data.window", "model.window"), "lr": ("train.lr",), "batch_size": ("train.batch_size",)}
+SUMMARY_FIELDS = ("trial_id", "status", "memory_decision", "rec", "motion", "appearance", "window", "lr",
+                  "batch_size", "run_batch_size", "grad_accumulation", "predicted_memory_gb",
+                  "requested_memory_gb", "measured_memory_gb", "memory_limit_gb", "epochs", "best_pmd_unseen",
+                  "mlflow_run_id")
+
+
+def _bounds(name: str, value, kind=float) -> tuple | None:
+    if value is None:
+        return None
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise ValueError(f"{name} must be [low, high], got {value!r}")
+    low, high = (kind(v) for v in value)
+    if not 0 < low <= high:
+        raise ValueError(f"{name} must satisfy 0 < low <= high, got {value!r}")
+    return low, high
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """The `sweep:` section of a sweep config (bounds are [low, high], inclusive; log-uniform for floats)."""
+
+    num_samples: int = 8
+    max_concurrent: int = 2
+    search: str = "optuna"  # optuna (TPE) | random
+    seed: int = 0
+    metric: str = "pmd_unseen"  # minimised; reported every epoch by train_func
+    rec: tuple = (0.1, 10.0)
+    motion: tuple = (1e-5, 1e-2)
+    appearance: tuple = (1e-5, 1e-2)
+    window: tuple = (2, 8)
+    lr: tuple | None = None  # e.g. [1e-5, 1e-3]
+    batch_size: tuple | None = None  # choices, e.g. [1, 2, 4]
+    memory_limit_gb: float | None = None  # per training worker; none = no gate
+    max_grad_accumulation: int = 16  # an adjustment needing more is a skip
+    grace_period: int = 1  # ASHA: epochs before a trial may be stopped
+    reduction_factor: int = 2
+    trial_cpus: float = 0.05  # the trial driver actor (> 0; the TorchTrainer's workers take train.cpus_per_worker)
+    points: tuple = ()  # configs tried first (dicts of searched parameters; missing ones: mid-range)
+
+    def __post_init__(self):
+        for name in ("rec", "motion", "appearance", "lr"):
+            object.__setattr__(self, name, _bounds(name, getattr(self, name)))
+        object.__setattr__(self, "window", _bounds("window", self.window, int))
+        if self.batch_size is not None:
+            choices = tuple(int(b) for b in self.batch_size)
+            if not choices or min(choices) < 1:
+                raise ValueError(f"batch_size must list positive batch sizes, got {self.batch_size!r}")
+            object.__setattr__(self, "batch_size", choices)
+        points = tuple(dict(p) for p in (self.points or ()))
+        for point in points:
+            unknown = sorted(set(point) - set(PARAMS))
+            if unknown:
+                raise ValueError(f"points: unknown parameter(s) {unknown} (known: {sorted(PARAMS)})")
+        object.__setattr__(self, "points", points)
+        if self.search not in SEARCHES:
+            raise ValueError(f"search must be one of {SEARCHES}, got {self.search!r}")
+        for name in ("num_samples", "max_concurrent", "max_grad_accumulation", "grace_period"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.reduction_factor < 2:
+            raise ValueError(f"reduction_factor must be >= 2, got {self.reduction_factor}")
+        if self.memory_limit_gb is not None and self.memory_limit_gb <= 0:
+            raise ValueError(f"memory_limit_gb must be > 0, got {self.memory_limit_gb}")
+        if not self.trial_cpus > 0:
+            raise ValueError(f"trial_cpus must be > 0 (Tune needs a resource request), got {self.trial_cpus}")
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+
+def split_config(config: dict) -> tuple[dict, SweepConfig]:
+    """A loaded sweep config -> (the run config for RunSpec, the parsed `sweep:` section)."""
+    config = dict(config)
+    sweep = from_dict(SweepConfig, config.pop("sweep", None), "sweep")
+    return config, sweep
+
+
+def search_space(sweep: SweepConfig) -> dict:
+    from ray import tune
+
+    space = {name: tune.loguniform(*getattr(sweep, name)) for name in ("rec", "motion", "appearance")}
+    space["window"] = tune.randint(sweep.window[0], sweep.window[1] + 1)  # upper bound exclusive
+    if sweep.lr:
+        space["lr"] = tune.loguniform(*sweep.lr)
+    if sweep.batch_size:
+        space["batch_size"] = tune.choice(list(sweep.batch_size))
+    return space
+
+
+def complete_points(sweep: SweepConfig, base_batch: int) -> list[dict]:
+    """`sweep.points` with every searched parameter set (Optuna needs whole points): missing ones at
+    the middle of their range (geometric for log-uniform ones), the config's batch if it is a choice."""
+    space = search_space(sweep)
+    middle = {name: math.sqrt(getattr(sweep, name)[0] * getattr(sweep, name)[1])
+              for name in ("rec", "motion", "appearance", "lr") if getattr(sweep, name)}
+    middle["window"] = (sweep.window[0] + sweep.window[1]) // 2
+    if sweep.batch_size:
+        middle["batch_size"] = base_batch if base_batch in sweep.batch_size else sweep.batch_size[0]
+    points = []
+    for point in sweep.points:
+        outside = sorted(set(point) - set(space))
+        if outside:
+            raise UserError(f"sweep.points: {outside} not searched (set sweep.{outside[0]} to search it)")
+        if "batch_size" in point and point["batch_size"] not in sweep.batch_size:
+            raise UserError(f"sweep.points: batch_size {point['batch_size']} is not one of sweep.batch_size")
+        points.append({name: point.get(name, middle[name]) for name in space})
+    return points
+
+
+def apply_params(config: dict, params: dict) -> dict:
+    """The run config of one trial: `config` with the sampled parameters set (a deep copy)."""
+    import copy
+
+    config = copy.deepcopy(config)
+    for name, value in params.items():
+        if name not in PARAMS:
+            continue
+        if isinstance(value, np.generic):
+            value = value.item()
+        for key in PARAMS[name]:
+            section, leaf = key.split(".")
+            config.setdefault(section, {})[leaf] = value
+    return config
+
+
+def gate(spec, vertices: int, faces: int | None, sweep: SweepConfig):
+    """The memory decision (`aniformer.memory.BatchPlan`) for one trial's RunSpec."""
+    cfg = spec.train
+    device = "cuda" if cfg.use_gpu else "cpu"
+    precision = cfg.precision if cfg.precision != "auto" else ("bf16" if cfg.use_gpu else "fp32")
+    plan = plan_batch(spec.model_name, spec.model, vertices=vertices, batch=cfg.batch_size,
+                      grad_accumulation=cfg.grad_accumulation, limit_gb=sweep.memory_limit_gb,
+                      precision=precision, device=device, workers=cfg.workers, faces=faces)
+    if plan.status == "adjusted_memory" and plan.grad_accumulation > sweep.max_grad_accumulation:
+        plan = dataclasses.replace(plan, status="skipped_memory")
+    return plan
+
+
+class TrialReport(TuneReportCallback):
+    """A TuneReportCallback that adds the trial's memory decision to every epoch's result."""
+
+    def __init__(self, extra: dict):
+        super().__init__()
+        self.extra = extra
+
+    def after_report(self, run_context, metrics, checkpoint):
+        metrics = [{**metrics[0], **self.extra}, *metrics[1:]]
+        super().after_report(run_context, metrics, checkpoint)
+
+
+PLACEMENT_GROUP_FILE = "placement_group.txt"
+
+
+def sweep_train_func(loop_config: dict) -> None:
+    """`pipeline.train.train_func`, after rank 0 wrote its worker group's placement group id to
+    `loop_config["placement_group_file"]`.
+
+    Tune stops a trial (ASHA, or its last epoch reaching max_t) by killing the trial's actor; the
+    TorchTrainer controller it owns dies with it, before it could remove its workers' placement
+    group. Train V2's detached PlacementGroupCleaner should remove it then, but it finds its cluster
+    through the state API, which goes to the wrong cluster when several Ray instances share a
+    machine (the dev/CI machines), so the group leaks and the next trial waits for its CPUs forever.
+    The sweep driver removes the recorded group when the trial ends (`release_placement_group`).
+    """
+    import ray.train
+
+    from pipeline.train import train_func
+
+    path = loop_config.get("placement_group_file")
+    group = ray.util.get_current_placement_group()
+    if path and group is not None and ray.train.get_context().get_world_rank() == 0:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(group.id.hex())
+    train_func(loop_config)
+
+
+def release_placement_group(path: Path) -> bool:
+    """Remove the placement group recorded in `path` if it still exists; True if one was removed."""
+    import ray
+    from ray.util.placement_group import PlacementGroup, placement_group_table, remove_placement_group
+
+    if not path.is_file():
+        return False
+    group = PlacementGroup(ray.PlacementGroupID(bytes.fromhex(path.read_text().strip())))
+    if not ray.is_initialized() or placement_group_table(group).get("state") in (None, "REMOVED"):
+        return False
+    remove_placement_group(group)
+    return True
+
+
+def _trial_trainer(spec, bank: Path, storage: Path, name: str, tracker, faces, callbacks):
+    """`pipeline.train.fit`'s TorchTrainer, plus `callbacks` in its RunConfig (Tune reporting)."""
+    from ray.train import CheckpointConfig, DataConfig, FailureConfig, RunConfig, ScalingConfig
+    from ray.train.torch import TorchTrainer
+
+    from pipeline.data import pair_dataset
+    from pipeline.train import EVAL_SPLITS, SCORE
+
+    cfg = spec.train
+    datasets = {"train": pair_dataset(bank, "train", spec.data, epochs=cfg.epochs)}
+    for split in EVAL_SPLITS:
+        datasets[split] = pair_dataset(bank, split, spec.data)
+    return TorchTrainer(
+        sweep_train_func,
+        train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": list(faces),
+                           "placement_group_file": str(storage / name / PLACEMENT_GROUP_FILE)},
+        scaling_config=ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
+                                     resources_per_worker={"CPU": cfg.cpus_per_worker},
+                                     placement_strategy=cfg.placement_strategy),
+        datasets=datasets,
+        dataset_config=DataConfig(datasets_to_split=["train"]),
+        run_config=RunConfig(
+            name=name, storage_path=str(storage), callbacks=callbacks,
+            checkpoint_config=CheckpointConfig(num_to_keep=cfg.keep_checkpoints, checkpoint_score_attribute=SCORE,
+                                               checkpoint_score_order="min"),
+            failure_config=FailureConfig(max_failures=cfg.max_failures),
+        ),
+    )
+
+
+def run_trial(params: dict, *, base: dict, sweep: dict, sweep_name: str, bank: str, storage: str,
+              experiment: str, parent_run_id: str, faces: list, vertices: int, mlflow_uri: str) -> None:
+    """The function trainable: gate, open the trial's MLflow child run, train (or report the skip)."""
+    import os
+
+    from ray import tune
+
+    # The driver's store, not one resolved in this actor (another env and cwd: Tune's trial dir).
+    os.environ["MLFLOW_TRACKING_URI"] = mlflow_uri
+
+    from pipeline.tracking import start_job_run
+    from pipeline.train import RunSpec
+
+    sweep_cfg = from_dict(SweepConfig, sweep, "sweep")
+    trial_id = tune.get_context().get_trial_id()
+    config = apply_params(base, params)
+    requested = RunSpec.from_config(config)
+    plan = gate(requested, vertices, len(faces), sweep_cfg)
+    run_cfg = apply_params(config, {"batch_size": plan.batch_size})
+    run_cfg["train"]["grad_accumulation"] = plan.grad_accumulation
+    spec = RunSpec.from_config(run_cfg)
+    name = f"{sweep_name}-{trial_id}"
+    tracker = start_job_run(name, spec.to_dict(), experiment=experiment, parent_run_id=parent_run_id)
+    extra = {"status": plan.status, "memory_decision": plan.status, "predicted_memory_gb": plan.predicted_gb,
+             "requested_memory_gb": plan.requested_gb, "memory_limit_gb": sweep_cfg.memory_limit_gb or math.nan,
+             "requested_batch_size": requested.train.batch_size, "run_batch_size": plan.batch_size,
+             "grad_accumulation": plan.grad_accumulation, "mlflow_run_id": tracker.run_id}
+    tracker.set_tags({"status": plan.status, "memory_decision": plan.status, "trial_id": trial_id,
+                      "predicted_memory_gb": f"{plan.predicted_gb:.3f}",
+                      "requested_memory_gb": f"{plan.requested_gb:.3f}",
+                      "requested_batch_size": requested.train.batch_size,
+                      "memory_limit_gb": sweep_cfg.memory_limit_gb or "none"})
+    if plan.status == "skipped_memory":  # never built at this size: one result, no metric value
+        tune.report({**extra, "epoch": 0, sweep_cfg.metric: math.nan})
+        tracker.end("KILLED")
+        return
+    trainer = _trial_trainer(spec, Path(bank), Path(storage), name, tracker, np.asarray(faces),
+                             [TrialReport(extra)])
+    result = trainer.fit()  # the driver-side SweepRuns callback ends the MLflow run with the final status
+    if result.error:
+        raise RuntimeError(f"trial {trial_id} failed: {type(result.error).__name__}: {result.error}")
+
+
+def trial_status(metrics: dict | None, error, epochs: int) -> str:
+    """One of STATUSES for a finished (or stopped) trial, from its last Tune result."""
+    if error is not None:
+        return "failed"
+    metrics = metrics or {}
+    decision = metrics.get("memory_decision")
+    if decision == "skipped_memory":
+        return decision
+    if decision is None or int(metrics.get("epoch", 0)) < epochs:
+        return "early_stopped" if decision is not None else "failed"
+    return decision
+
+
+MLFLOW_STATUS = {"ok": "FINISHED", "adjusted_memory": "FINISHED", "early_stopped": "KILLED",
+                 "skipped_memory": "KILLED", "failed": "FAILED"}
+
+
+class SweepRuns(Callback):
+    """Driver-side: end each trial's MLflow child run with its final status as the trial ends
+    (also ASHA-stopped trials, whose trainable is stopped before it could do so itself)."""
+
+    def __init__(self, epochs: int, sweep_name: str, trials_dir: str):
+        self.epochs, self.sweep_name, self.trials_dir = epochs, sweep_name, trials_dir
+
+    def _end(self, trial, error) -> None:
+        try:  # a callback that raises would fail the trial: report and go on
+            self._release_and_end(trial, error)
+        except Exception as e:
+            print(f"sweep: could not finalise trial {trial.trial_id}: {type(e).__name__}: {e}", flush=True)
+
+    def _release_and_end(self, trial, error) -> None:
+        release_placement_group(Path(self.trials_dir) / f"{self.sweep_name}-{trial.trial_id}" / PLACEMENT_GROUP_FILE)
+        metrics = trial.last_result or {}
+        run_id = metrics.get("mlflow_run_id")
+        if not run_id:
+            return
+        status = trial_status(metrics, error, self.epochs)
+        tracker = Tracker(tracking_uri(), run_id)
+        tags = {"status": status}
+        if "peak_memory_gb" in metrics:
+            tags["measured_memory_gb"] = f"{metrics['peak_memory_gb']:.3f}"
+        tracker.set_tags(tags)
+        tracker.end(MLFLOW_STATUS[status])
+
+    def on_trial_complete(self, iteration, trials, trial, **info):
+        self._end(trial, None)
+
+    def on_trial_error(self, iteration, trials, trial, **info):
+        self._end(trial, trial.error_file or "error")
+
+
+def build_tuner(base: dict, sweep: SweepConfig, *, sweep_name: str, out: Path, bank: Path, experiment: str,
+                parent_run_id: str, faces: np.ndarray, vertices: int, restore: bool):
+    """A new Tuner for the sweep, or the interrupted one restored from `out/tune/<sweep_name>`."""
+    from ray import tune
+    from ray.tune.schedulers import ASHAScheduler
+    from ray.tune.search.basic_variant import BasicVariantGenerator
+
+    from pipeline.train import RunSpec
+
+    spec = RunSpec.from_config(base)
+    trainable = tune.with_resources(
+        tune.with_parameters(run_trial, base=base, sweep=sweep.to_dict(), sweep_name=sweep_name, bank=str(bank),
+                             storage=str(out / "trials"), experiment=experiment, parent_run_id=parent_run_id,
+                             faces=np.asarray(faces).tolist(), vertices=int(vertices), mlflow_uri=tracking_uri()),
+        {"CPU": sweep.trial_cpus})
+    path = out / "tune" / sweep_name
+    if restore:
+        return tune.Tuner.restore(str(path), trainable, resume_unfinished=True, resume_errored=True)
+    points = complete_points(sweep, spec.train.batch_size)
+    if sweep.search == "optuna":
+        from ray.tune.search.optuna import OptunaSearch
+
+        search = OptunaSearch(points_to_evaluate=points or None, seed=sweep.seed)
+    else:
+        search = BasicVariantGenerator(points_to_evaluate=points or None, random_state=sweep.seed)
+    scheduler = ASHAScheduler(time_attr="epoch", max_t=spec.train.epochs, grace_period=sweep.grace_period,
+                              reduction_factor=sweep.reduction_factor)
+    return tune.Tuner(
+        trainable,
+        param_space=search_space(sweep),
+        tune_config=tune.TuneConfig(metric=sweep.metric, mode="min", search_alg=search, scheduler=scheduler,
+                                    num_samples=sweep.num_samples, max_concurrent_trials=sweep.max_concurrent),
+        run_config=tune.RunConfig(name=sweep_name, storage_path=str(out / "tune"),
+                                  callbacks=[SweepRuns(spec.train.epochs, sweep_name, str(out / "trials"))],
+                                  failure_config=tune.FailureConfig(max_failures=0)),
+    )
+
+
+def experiment_exists(out: Path, sweep_name: str) -> bool:
+    from ray import tune
+
+    path = out / "tune" / sweep_name
+    return path.is_dir() and tune.Tuner.can_restore(str(path))
+
+
+def summarize(results, sweep: SweepConfig, epochs: int) -> list[dict]:
+    """One row per trial (SUMMARY_FIELDS), in trial-id order."""
+    rows = []
+    trials = results._experiment_analysis.trials  # same order as the results; no public accessor in 2.60
+    for trial, result in zip(trials, results):
+        metrics = result.metrics or {}
+        config = result.config or {}
+        status = trial_status(metrics, result.error, epochs)
+        best = math.nan
+        frame = result.metrics_dataframe
+        if frame is not None and sweep.metric in frame:
+            values = frame[sweep.metric].astype(float)
+            values = values[np.isfinite(values)]
+            best = float(values.min()) if len(values) else math.nan
+        trial_id = trial.trial_id
+        rows.append({
+            "trial_id": trial_id, "status": status, "memory_decision": metrics.get("memory_decision", ""),
+            "rec": config.get("rec"), "motion": config.get("motion"), "appearance": config.get("appearance"),
+            "window": config.get("window"), "lr": config.get("lr", ""),
+            "batch_size": metrics.get("requested_batch_size", config.get("batch_size", "")),
+            "run_batch_size": metrics.get("run_batch_size", "") if status != "skipped_memory" else "",
+            "grad_accumulation": metrics.get("grad_accumulation", ""),
+            "predicted_memory_gb": _round(metrics.get("predicted_memory_gb")),
+            "requested_memory_gb": _round(metrics.get("requested_memory_gb")),
+            "measured_memory_gb": _round(metrics.get("peak_memory_gb")),
+            "memory_limit_gb": sweep.memory_limit_gb if sweep.memory_limit_gb is not None else "",
+            "epochs": int(metrics.get("epoch", 0) or 0), "best_pmd_unseen": _round(best, 4),
+            "mlflow_run_id": metrics.get("mlflow_run_id", ""),
+        })
+    return sorted(rows, key=lambda r: str(r["trial_id"]))
+
+
+def _round(value, digits: int = 3):
+    if value is None:
+        return ""
+    value = float(value)
+    return round(value, digits) if math.isfinite(value) else ""
+
+
+def write_summary(rows: list[dict], path: Path) -> Path:
+    from aniformer.cli import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=SUMMARY_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def best_row(rows: list[dict]) -> dict | None:
+    ran = [r for r in rows if r["status"] in ("ok", "adjusted_memory", "early_stopped") and r["best_pmd_unseen"] != ""]
+    return min(ran, key=lambda r: r["best_pmd_unseen"]) if ran else None
+
+
+def unfinished_trials(experiment: Path, num_samples: int) -> list[str]:
+    """Trial ids an interrupted sweep left to do, from the experiment state Tune saved (what
+    `Tuner.restore` will read): trials neither terminated nor errored, plus "(not created)" for each
+    sample the search had not produced yet."""
+    from ray.tune import ExperimentAnalysis
+
+    trials = ExperimentAnalysis(str(experiment)).trials
+    left = [t.trial_id for t in trials if t.status not in ("TERMINATED", "ERROR")]
+    return left + ["(not created)"] * max(0, num_samples - len(trials))

@@ -1,0 +1,244 @@
+"""Sweeps (pipeline/tune.py, jobs/sweep.py): the memory gate, MLflow parent/child runs, restore.
+
+The end-to-end test runs `jobs/sweep.py` as a subprocess on the session's Ray cluster (RAY_ADDRESS),
+interrupts it (SIGINT) once a trial has finished, and runs the same command again: the restored
+sweep must finish only the trials that had not finished.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from aniformer.cli import UserError, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "configs/sweep_tiny.yaml"
+
+
+# ---------------------------------------------------------------- fast: config, space, gate, status
+
+
+def test_sweep_config_parses_and_rejects_bad_sections():
+    from pipeline.train import RunSpec
+    from pipeline.tune import apply_params, split_config
+
+    base, sweep = split_config(load_config(CONFIG))
+    RunSpec.from_config(base)
+    assert sweep.window[0] < sweep.window[1] and sweep.rec[0] < sweep.rec[1]
+    trial = apply_params(base, {"rec": 2.0, "motion": 1e-3, "appearance": 2e-3, "window": 6, "batch_size": 8})
+    spec = RunSpec.from_config(trial)
+    assert (spec.loss.rec, spec.loss.motion, spec.loss.appearance) == (2.0, 1e-3, 2e-3)
+    assert spec.data.window == spec.model.window == 6 and spec.train.batch_size == 8
+    assert base["data"]["window"] == 3  # the base config is not modified
+    for override, message in [("sweep.rec=[0, 1]", "0 < low <= high"), ("sweep.search=grid", "search must be"),
+                              ("sweep.wings=1", "unknown key(s) in [sweep]"),
+                              ("sweep.points=[{depth: 3}]", "unknown parameter")]:
+        with pytest.raises(UserError, match=re.escape(message)):
+            split_config(load_config(CONFIG, [override]))
+
+
+def test_points_are_completed_for_the_search():
+    from pipeline.tune import complete_points, split_config
+
+    _, sweep = split_config(load_config(CONFIG, ["sweep.batch_size=[4, 64]", "sweep.points=[{window: 8, batch_size: 64}]"]))
+    (point,) = complete_points(sweep, base_batch=4)
+    assert point["window"] == 8 and point["batch_size"] == 64
+    assert point["rec"] == pytest.approx(math.sqrt(sweep.rec[0] * sweep.rec[1]))
+    _, sweep = split_config(load_config(CONFIG, ["sweep.points=[{batch_size: 64}]"]))
+    with pytest.raises(UserError, match="not searched"):
+        complete_points(sweep, base_batch=4)
+
+
+def test_gate_adjusts_then_skips_oversized_trials():
+    from pipeline.train import RunSpec
+    from pipeline.tune import apply_params, gate, split_config
+
+    base, sweep = split_config(load_config(CONFIG, ["sweep.memory_limit_gb=1.2"]))
+    def plan(**params):
+        return gate(RunSpec.from_config(apply_params(base, params)), vertices=369, faces=734, sweep=sweep)
+
+    assert plan(window=3, batch_size=4).status == "ok"
+    adjusted = plan(window=8, batch_size=64)
+    assert adjusted.status == "adjusted_memory" and adjusted.predicted_gb <= 1.2 < adjusted.requested_gb
+    assert adjusted.batch_size * adjusted.grad_accumulation == 64
+    assert plan(window=8, batch_size=4096).status == "skipped_memory"  # would need > 16x accumulation
+
+
+def test_trial_status():
+    from pipeline.tune import trial_status
+
+    assert trial_status({"memory_decision": "ok", "epoch": 2}, None, 2) == "ok"
+    assert trial_status({"memory_decision": "adjusted_memory", "epoch": 2}, None, 2) == "adjusted_memory"
+    assert trial_status({"memory_decision": "ok", "epoch": 1}, None, 2) == "early_stopped"
+    assert trial_status({"memory_decision": "skipped_memory", "epoch": 0}, None, 2) == "skipped_memory"
+    assert trial_status({"memory_decision": "ok", "epoch": 1}, RuntimeError("x"), 2) == "failed"
+    assert trial_status({}, None, 2) == "failed"
+
+
+# ---------------------------------------------------------------- end to end on the Ray cluster
+
+SWEEP = ["sweep.num_samples=3", "sweep.max_concurrent=1", "sweep.search=optuna", "sweep.seed=1",
+         "sweep.memory_limit_gb=1.2", "sweep.batch_size=[4, 64, 4096]",
+         # in this order: 4096 cannot fit within 16x accumulation (skipped); 64 fits at 16 x 4 (adjusted);
+         # batch 4 fits (ok) and is the trial the interruption catches running
+         "sweep.points=[{window: 8, batch_size: 4096}, {window: 8, batch_size: 64}, {window: 3, batch_size: 4}]",
+         "train.epochs=2", "train.render_every=2"]
+
+
+def _sweep_job(out: Path, bank: Path, ray_address: str, log: Path) -> subprocess.Popen:
+    """The sweep as a subprocess; its output goes to `log` (Tune and Ray Data print a lot: a pipe
+    nobody reads while the test polls would fill up and block the sweep's driver)."""
+    env = {**os.environ, "RAY_ADDRESS": ray_address, "MLFLOW_TRACKING_URI": f"sqlite:///{out.parent / 'mlflow.db'}"}
+    cmd = [sys.executable, str(ROOT / "jobs/sweep.py"), "--config", str(CONFIG), "--out", str(out),
+           "--bank", str(bank), *SWEEP]
+    with open(log, "w") as f:
+        return subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, text=True, cwd=out.parent,
+                                start_new_session=True)
+
+
+def _tail(log: Path, n: int = 4000) -> str:
+    return log.read_text(errors="replace")[-n:]
+
+
+def _runs(out: Path):
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(f"sqlite:///{out.parent / 'mlflow.db'}")
+    experiment = client.get_experiment_by_name("aniformer")
+    runs = client.search_runs([experiment.experiment_id]) if experiment else []
+    parent = [r for r in runs if r.data.tags.get("aniformer.job") == out.name]
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") in {p.info.run_id for p in parent}]
+    return client, parent, children
+
+
+@pytest.fixture(scope="module")
+def sweep_run(tmp_path_factory, ray_address):
+    """Run the sweep, interrupt it after the first trained trial, run it again; what each saw."""
+    from pipeline.data import data_config, generate_bank
+
+    root = tmp_path_factory.mktemp("sweep")
+    bank = root / "bank"
+    generate_bank(data_config(load_config(CONFIG)), bank, progress=False)
+    out = root / "tiny_sweep"
+    first_log, second_log = root / "first.log", root / "second.log"
+    job = _sweep_job(out, bank, ray_address, first_log)
+    deadline = time.time() + 600
+    try:
+        while True:  # a trained trial has ended (the driver callback set its final status)
+            assert job.poll() is None, _tail(first_log)
+            assert time.time() < deadline, "no trial finished"
+            _, _, children = _runs(out)
+            trained = [c for c in children if c.info.status != "RUNNING" and c.data.tags.get("status") in
+                       ("ok", "adjusted_memory", "early_stopped")]
+            if trained:
+                break
+            time.sleep(2)
+        time.sleep(3)
+        job.send_signal(signal.SIGINT)  # Tune saves the experiment state and stops
+        job.wait(timeout=240)
+    finally:
+        if job.poll() is None:
+            os.killpg(job.pid, signal.SIGKILL)
+    _, _, children = _runs(out)
+    before = {c.data.tags["trial_id"]: c for c in children}
+    second = _sweep_job(out, bank, ray_address, second_log)
+    try:
+        second.wait(timeout=900)
+    finally:
+        if second.poll() is None:
+            os.killpg(second.pid, signal.SIGKILL)
+    assert second.returncode == 0, _tail(second_log)
+    return {"out": out, "first": (job.returncode, first_log.read_text(errors="replace")),
+            "second": second_log.read_text(errors="replace"), "before": before}
+
+
+def _summary(out: Path) -> list[dict]:
+    with open(out / "summary.csv") as f:
+        return list(csv.DictReader(f))
+
+
+
+
+@pytest.mark.slow
+@pytest.mark.ray
+def test_interrupted_sweep_restores_without_rerunning_finished_trials(sweep_run):
+    code, output = sweep_run["first"]
+    assert code != 0 and "run the same command again" in output, output[-3000:]  # and said so
+    assert "restoring sweep" in sweep_run["second"]
+    client, _, children = _runs(sweep_run["out"])
+    after = {c.data.tags["trial_id"]: c for c in children}
+    rows = _summary(sweep_run["out"])
+    assert len(rows) == 3 and {r["trial_id"] for r in rows} == set(after)
+    for trial_id, run in sweep_run["before"].items():
+        if run.data.tags.get("status") == "interrupted":
+            continue  # unfinished at the interruption: restored
+        # finished before the interruption: not run again (same end, no resumed training)
+        assert after[trial_id].info.end_time == run.info.end_time, trial_id
+        assert not client.get_metric_history(run.info.run_id, "resumed_from_epoch")
+        epochs = [m.step for m in client.get_metric_history(run.info.run_id, "epoch")]
+        assert len(epochs) == len(set(epochs)), f"trial {trial_id} trained twice: {epochs}"
+    assert all(r.info.status != "RUNNING" for r in sweep_run["before"].values())
+    unfinished = [t for t, r in sweep_run["before"].items() if r.data.tags.get("status") == "interrupted"]
+    assert len(sweep_run["before"]) < 3 or unfinished, "the interruption caught no running trial"
+    for trial_id in unfinished:  # restored and finished by the second run
+        assert after[trial_id].info.status in ("FINISHED", "KILLED") and after[trial_id].data.tags["status"] in (
+            "ok", "early_stopped")
+
+
+@pytest.mark.slow
+@pytest.mark.ray
+def test_oversized_trials_are_gated_before_launch_and_summarised(sweep_run):
+    out = sweep_run["out"]
+    rows = _summary(out)
+    by_batch = {}
+    for row in rows:
+        assert row["status"] in ("ok", "adjusted_memory", "skipped_memory", "early_stopped", "failed")
+        assert row["status"] != "failed", row
+        assert float(row["predicted_memory_gb"]) > 0 and row["memory_limit_gb"] == "1.2"
+        by_batch.setdefault((row["window"], row["batch_size"]), row)
+    skipped = by_batch[("8", "4096")]
+    assert skipped["status"] == "skipped_memory" and skipped["run_batch_size"] == "" and skipped["best_pmd_unseen"] == ""
+    assert not list((out / "trials").glob(f"*{skipped['trial_id']}*")), "a skipped trial was launched"
+    adjusted = by_batch[("8", "64")]
+    assert adjusted["memory_decision"] == "adjusted_memory"
+    assert adjusted["status"] in ("adjusted_memory", "early_stopped")
+    assert int(adjusted["run_batch_size"]) * int(adjusted["grad_accumulation"]) == 64
+    assert float(adjusted["predicted_memory_gb"]) <= 1.2 < float(adjusted["requested_memory_gb"])
+    assert float(adjusted["measured_memory_gb"]) > 0 and float(adjusted["best_pmd_unseen"]) > 0
+    # it ran at the adjusted batch, never at 64: the child run's config says so
+    client, _, children = _runs(out)
+    child = next(c for c in children if c.data.tags["trial_id"] == adjusted["trial_id"])
+    assert child.data.params["train.batch_size"] == adjusted["run_batch_size"]
+    assert child.data.params["train.grad_accumulation"] == adjusted["grad_accumulation"]
+    assert child.data.tags["requested_batch_size"] == "64"
+
+
+@pytest.mark.slow
+@pytest.mark.ray
+def test_mlflow_parent_and_child_runs_are_comparable(sweep_run):
+    out = sweep_run["out"]
+    client, parents, children = _runs(out)
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+    parent = parents[0]
+    assert len(children) == 3
+    rows = {r["trial_id"]: r for r in _summary(out)}
+    for child in children:
+        assert child.info.status in ("FINISHED", "KILLED"), child.info  # never left RUNNING
+        row = rows[child.data.tags["trial_id"]]
+        assert child.data.tags["status"] == row["status"]
+        assert "predicted_memory_gb" in child.data.tags and "loss.rec" in child.data.params
+        if row["status"] != "skipped_memory":
+            assert [m.step for m in client.get_metric_history(child.info.run_id, "pmd_unseen")], row
+    best = [c for c in children if c.data.tags.get("best") == "true"]
+    assert len(best) == 1 and parent.data.tags["best_run_id"] == best[0].info.run_id
+    assert [a.path for a in client.list_artifacts(parent.info.run_id)] == ["summary.csv"]
