@@ -1,0 +1,179 @@
+"""Ablation: train every variant of a config with the same budget, then one PMD table (the paper's Table 1).
+
+    python jobs/ablate.py --config configs/ablation.yaml --out runs/ablation [train.epochs=4 ...]
+
+The config is a run config plus an `ablation:` section naming the variants (see pipeline/ablation.py).
+Each variant trains exactly as jobs/train.py does (Ray Train, checkpoints, MLflow) into
+`OUT/runs/<variant>/`, all on one mesh bank (`--bank DIR`, else `OUT/bank`, generated on first use).
+The table goes to `OUT/ablation.md`, `.csv` and `.json` and to the MLflow run of the ablation, whose
+children are the variants' training runs. Running the same command again keeps the variants that
+finished (their `best.pt`), resumes an interrupted one from its last checkpoint and trains the rest.
+Without RAY_ADDRESS a local Ray instance is started.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from aniformer.cli import ArgumentParser, UserError, run  # noqa: E402
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    p = ArgumentParser(prog="ablate.py", description=__doc__.split("\n\n")[0])
+    p.add_argument("--config", required=True, metavar="FILE")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (runs/, ablation.md/.csv/.json)")
+    p.add_argument("--name", default=None, help="ablation name: MLflow parent run and job prefix (default: OUT's name)")
+    p.add_argument("--bank", default=None, metavar="DIR", help="an existing mesh bank (default: OUT/bank)")
+    p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
+    p.add_argument("overrides", nargs="*", metavar="key=value")
+    return p.parse_args(argv)
+
+
+def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: str, parent_run_id: str,
+                    faces) -> dict[str, Path]:
+    """Train each variant that has no finished checkpoint yet; {row name: best.pt}."""
+    from aniformer.checkpoint import load_checkpoint
+    from pipeline.ablation import slug
+    from pipeline.tracking import start_job_run
+    from pipeline.train import train_job
+
+    best = {}
+    for row, spec in specs.items():
+        run_dir = out / "runs" / slug(row)
+        best[row] = run_dir / "best.pt"
+        if best[row].is_file():
+            if load_checkpoint(best[row])["config"] != spec.to_dict():
+                raise UserError(f"{run_dir} holds a run of another config than variant {row!r}; "
+                                "use a new --out (or remove that directory)")
+            print(f"[{row}] kept: {best[row]}", flush=True)
+            continue
+        print(f"[{row}] training ({spec.model_name}, {spec.train.epochs} epochs) ...", flush=True)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        tracker = start_job_run(f"{name}-{slug(row)}", spec.to_dict(), experiment=experiment,
+                                parent_run_id=parent_run_id)
+        tracker.set_tags({"ablation.variant": row})
+        status = "FAILED"
+        try:
+            result = train_job(spec, bank, run_dir, f"{name}-{slug(row)}", tracker, faces)
+            status = "FINISHED"
+        except (KeyboardInterrupt, SystemExit):
+            status = "KILLED"
+            raise
+        finally:
+            tracker.end(status)
+        print(f"[{row}] PMD unseen {result.metrics.get('pmd_unseen', float('nan')):.3f} (x1e-4, validation)", flush=True)
+    return best
+
+
+def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: int, pairs: int):
+    """{row: {split: PMD x1e4}} on the same pairs for every row, and the splits used."""
+    from aniformer.checkpoint import model_from_checkpoint
+    from aniformer.evaluate import Samplers, copy_driver_contender, evaluate_table, model_contender
+    from pipeline.data import SPLITS, PairSampler, load_bank
+
+    bank = load_bank(bank_dir)
+    splits = list(ablation.splits) or [s for s in SPLITS if s in bank.manifest["splits"]]
+    unknown = [s for s in splits if s not in bank.manifest["splits"]]
+    if unknown:
+        raise UserError(f"ablation.splits: unknown split(s) {', '.join(unknown)}; the bank has "
+                        f"{', '.join(bank.manifest['splits'])}")
+    splits = [s for s in splits if bank.manifest["splits"][s]["motions"] and bank.manifest["splits"][s]["targets"]]
+
+    center = next(iter(specs.values())).data.center
+    samplers = {}  # one per shuffle mode, each caching a sampler per window
+
+    def sampler_for(shuffle: str) -> Samplers:
+        if shuffle not in samplers:
+            samplers[shuffle] = Samplers(lambda window, mode: PairSampler(
+                bank, window=window, shuffle=mode, center=center, seed=seed, eval_pairs=pairs), shuffle)
+        return samplers[shuffle]
+
+    table = {}
+    for row, spec in specs.items():
+        model, _ = model_from_checkpoint(checkpoints[row])
+        table |= evaluate_table([model_contender(row, model)], sampler_for(spec.data.shuffle), splits,
+                                pairs=pairs, seed=seed)
+    if ablation.copy_driver:
+        window = next(iter(specs.values())).data.window
+        table |= evaluate_table([copy_driver_contender(window)], sampler_for("none"), splits, pairs=pairs, seed=seed)
+    return table, splits
+
+
+def main(argv: list[str]) -> None:
+    args = parse_args(argv)
+    from pipeline.ablation import load_ablation_config, variant_specs
+
+    base, ablation = load_ablation_config(args.config, args.overrides)
+    specs = variant_specs(base, ablation)  # bad config or variant: one line before anything starts
+    if len({spec.data.center for spec in specs.values()}) > 1:
+        raise UserError("ablation variants must share data.center (they are scored on the same pairs)")
+    out = Path(args.out).resolve()
+    name = args.name or out.name
+    bank = Path(args.bank).resolve() if args.bank else out / "bank"
+    out.mkdir(parents=True, exist_ok=True)
+
+    from aniformer.cli import atomic_path
+    from aniformer.evaluate import table_csv, table_markdown
+    from aniformer.memory import parameter_count
+    from pipeline.ablation import slug
+    from pipeline.cluster import connect
+    from pipeline.data import prepare_bank
+    from pipeline.tracking import quiet_mlflow, start_job_run
+
+    quiet_mlflow()
+    connect()
+    first = next(iter(specs.values()))
+    _, faces = prepare_bank(first.data, bank, generate=args.bank is None)
+    parent = start_job_run(name, {**first.to_dict(), "ablation": {slug(row): " ".join(overrides) or "(base)"
+                                                                  for row, overrides in ablation.variants.items()}},
+                           experiment=args.experiment)
+    parent.set_tags({"kind": "ablation"})
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    status = "FAILED"
+    started = time.perf_counter()
+    try:
+        checkpoints = _train_variants(specs, bank, out, name, args.experiment, parent.run_id, faces)
+        seed, pairs = first.data.seed, ablation.pairs or first.data.eval_pairs
+        print(f"evaluating {len(specs)} variants on {pairs} pairs per split ...", flush=True)
+        table, splits = _evaluate(specs, checkpoints, bank, ablation, seed, pairs)
+        notes = [f"Every variant: {first.train.epochs} epochs x {first.data.pairs_per_epoch} pairs, batch "
+                 f"{first.train.batch_size}; scored on {pairs} pairs per split (seed {seed}) with the vertex "
+                 "shuffling it was trained with (copy-driver: unshuffled). Variants (overrides of the base config):", ""]
+        notes += [f"- {row}: `{' '.join(ablation.variants[row]) or '(base config)'}` — "
+                  f"{specs[row].model_name}, {parameter_count(specs[row].model_name, specs[row].model):,} parameters, "
+                  f"shuffle `{specs[row].data.shuffle}`" for row in specs]
+        markdown = table_markdown(table, splits, notes=notes)
+        result = {"name": name, "bank": str(bank), "pairs": pairs, "seed": seed, "splits": splits, "table": table,
+                  "variants": {row: {"overrides": list(ablation.variants[row]), "checkpoint": str(checkpoints[row]),
+                                     "config": specs[row].to_dict()} for row in specs}}
+        files = {"ablation.md": markdown, "ablation.csv": table_csv(table, splits),
+                 "ablation.json": json.dumps(result, indent=2) + "\n"}
+        for filename, text in files.items():
+            with atomic_path(out / filename) as tmp:
+                tmp.write_text(text)
+            parent.log_artifact(out / filename, "ablation")
+        parent.log_metrics({f"pmd_{split}.{slug(row)}": value for row, values in table.items()
+                            for split, value in values.items()}, step=0)
+        status = "FINISHED"
+    except (KeyboardInterrupt, SystemExit):
+        status = "KILLED"
+        raise
+    finally:
+        parent.end(status)
+    print(markdown.split("\n\nEvery variant")[0].strip())
+    print(f"ablation {name}: {len(specs)} variants in {time.perf_counter() - started:.0f} s")
+    print(f"table: {out / 'ablation.md'}, {out / 'ablation.csv'}")
+    print(f"MLflow run: {parent.run_id} in {parent.uri}")
+    print(f"  compare the variants: mlflow ui --backend-store-uri {parent.uri}")
+
+
+if __name__ == "__main__":
+    run(main)

@@ -1,0 +1,94 @@
+"""Ablations like the paper's Table 1: variants of one run config, each trained with the same budget
+through the training pipeline, then scored on the same pairs.
+
+An ablation config is a run config (data/model/loss/train, as for jobs/train.py), or `base: FILE`
+naming one (relative to the ablation config), plus::
+
+    base: default.yaml            # the "full" row is then exactly that config
+    ablation:
+      pairs: 500                  # evaluation pairs per split (default: data.eval_pairs)
+      splits: [seen, unseen]      # default: every split of the bank
+      copy_driver: true           # add the copy-driver row
+      variants:                   # row name -> key=value overrides of the base config (as on the CLI)
+        regression head: [model.head=regression, loss.motion=0, loss.appearance=0]
+        full: []
+
+A variant may change anything but the budget: `train.epochs`, `train.batch_size` and
+`data.pairs_per_epoch` stay the base config's. Every variant is evaluated on pairs drawn with the
+same seed, with the vertex shuffling it was trained with (the copy-driver on unshuffled pairs).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from aniformer.cli import UserError, apply_overrides, from_dict, load_config
+
+BUDGET = (("train", "epochs"), ("train", "batch_size"), ("data", "pairs_per_epoch"))
+
+
+@dataclass(frozen=True)
+class AblationConfig:
+    """The `ablation:` section."""
+
+    variants: dict = field(default_factory=dict)
+    pairs: int | None = None
+    splits: tuple = ()
+    copy_driver: bool = True
+
+    def __post_init__(self):
+        if not isinstance(self.variants, dict) or not self.variants:
+            raise ValueError("variants must map row names to lists of key=value overrides")
+        for name, overrides in self.variants.items():
+            if not isinstance(overrides, (list, tuple)) or not all(isinstance(o, str) for o in overrides):
+                raise ValueError(f"variant {name!r}: overrides must be a list of 'key=value' strings")
+        slugs = [slug(name) for name in self.variants]
+        if len(set(slugs)) != len(slugs) or not all(slugs):
+            raise ValueError(f"variant names must differ in their letters and digits, got {list(self.variants)}")
+        if self.pairs is not None and int(self.pairs) < 1:
+            raise ValueError(f"pairs must be >= 1, got {self.pairs}")
+        object.__setattr__(self, "splits", tuple(self.splits))
+
+
+def slug(name: str) -> str:
+    """A variant's directory and MLflow job suffix: '+L_m' -> 'l_m'."""
+    return re.sub(r"[^0-9a-z]+", "_", str(name).lower()).strip("_")
+
+
+def load_ablation_config(path: str | os.PathLike, overrides: Sequence[str] = ()) -> tuple[dict, AblationConfig]:
+    """(the base run config with `overrides` applied, the parsed `ablation:` section) of an ablation config."""
+    config = load_config(path)
+    base_file = config.pop("base", None)
+    if base_file is not None:
+        beside = sorted(set(config) - {"ablation"})
+        if beside:
+            raise UserError(f"{path}: `base: {base_file}` and run sections ({', '.join(beside)}) together; "
+                            "put the changes in the variants or the base config")
+        config |= load_config(Path(path).parent / str(base_file))
+    config = apply_overrides(config, overrides)
+    return config, from_dict(AblationConfig, config.pop("ablation", None), "ablation")
+
+
+def variant_specs(base: dict, ablation: AblationConfig) -> dict:
+    """{row name: RunSpec} of every variant; `UserError` naming the variant if one is invalid or
+    changes the training budget."""
+    from pipeline.train import RunSpec
+
+    reference = RunSpec.from_config(base)
+    specs = {}
+    for name, overrides in ablation.variants.items():
+        try:
+            spec = RunSpec.from_config(apply_overrides(base, overrides))
+        except UserError as e:
+            raise UserError(f"ablation variant {name!r}: {e}") from None
+        for section, key in BUDGET:
+            mine, theirs = getattr(getattr(spec, section), key), getattr(getattr(reference, section), key)
+            if mine != theirs:
+                raise UserError(f"ablation variant {name!r} changes the budget ({section}.{key}={mine}, "
+                                f"base {theirs}); every variant trains with the base config's budget")
+        specs[name] = spec
+    return specs

@@ -1,0 +1,104 @@
+"""Ablations (pipeline/ablation.py, jobs/ablate.py): config parsing and a tiny run end to end."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from aniformer.cli import UserError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def write_config(path: Path, ablation: dict, base: str | None = str(ROOT / "configs/tiny.yaml"), **sections) -> Path:
+    config = {"ablation": ablation, **sections}
+    if base is not None:
+        config["base"] = base
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def test_shipped_ablation_config_has_the_paper_rows_and_one_budget():
+    from pipeline.ablation import load_ablation_config, variant_specs
+
+    base, ablation = load_ablation_config(ROOT / "configs/ablation.yaml")
+    specs = variant_specs(base, ablation)
+    full = specs["AniFormer (full)"]
+    default = yaml.safe_load((ROOT / "configs/default.yaml").read_text())
+    assert full.train.epochs == default["train"]["epochs"] and full.model.channels == tuple(default["model"]["channels"])
+    assert specs["regression head"].model.head == "regression"
+    assert (specs["no head"].loss.motion, specs["no head"].loss.appearance) == (0, 0)
+    assert specs["+ L_m"].loss.motion > 0 == specs["+ L_m"].loss.appearance
+    assert specs["+ L_a"].loss.appearance > 0 == specs["+ L_a"].loss.motion
+    assert specs["NPT (frame by frame)"].model_name == "npt"
+    assert {s.train.epochs for s in specs.values()} == {full.train.epochs}
+
+
+def test_bad_ablation_configs_fail_with_one_line(tmp_path):
+    from pipeline.ablation import load_ablation_config, variant_specs
+
+    def fails(path: Path, message: str, overrides=()):
+        with pytest.raises(UserError, match=message):
+            base, ablation = load_ablation_config(path, overrides)
+            variant_specs(base, ablation)
+
+    fails(write_config(tmp_path / "a.yaml", {"variants": {"long": ["train.epochs=50"]}}), "changes the budget")
+    fails(write_config(tmp_path / "b.yaml", {"variants": {"x": ["model.attention=sideways"]}}), "variant 'x'.*attention")
+    fails(write_config(tmp_path / "c.yaml", {"variants": {"a b": [], "a-b": []}}), "differ in their letters")
+    fails(write_config(tmp_path / "d.yaml", {"variants": {}}), "variants must map")
+    fails(write_config(tmp_path / "e.yaml", {"variants": {"x": []}}, train={"epochs": 3}), "base: .* and run sections")
+    fails(write_config(tmp_path / "f.yaml", {"variants": {"x": []}}), "unknown key", ["ablation.depth=3"])
+    # overrides on the command line apply to the base config, variants on top
+    base, ablation = load_ablation_config(write_config(tmp_path / "g.yaml", {"variants": {"x": ["train.lr=0.5"]}}),
+                                          ["train.epochs=1"])
+    (spec,) = variant_specs(base, ablation).values()
+    assert (spec.train.epochs, spec.train.lr) == (1, 0.5)
+
+
+@pytest.mark.slow
+@pytest.mark.ray
+def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address):
+    from mlflow.tracking import MlflowClient
+
+    config = write_config(tmp_path / "ablation.yaml", {
+        "pairs": 16,
+        "variants": {"AniFormer (full)": [], "cross, shuffle both": ["model.attention=cross", "data.shuffle=both"]}})
+    out = tmp_path / "abl"
+    env = {**os.environ, "RAY_ADDRESS": ray_address, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+    cmd = [sys.executable, str(ROOT / "jobs/ablate.py"), "--config", str(config), "--out", str(out), "train.epochs=1"]
+    first = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900, cwd=tmp_path)
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+
+    with open(out / "ablation.csv") as f:
+        rows = {r["method"]: r for r in csv.DictReader(f)}
+    assert set(rows) == {"AniFormer (full)", "cross, shuffle both", "copy-driver"}
+    splits = json.loads((out / "ablation.json").read_text())["splits"]
+    assert {"seen", "unseen"} <= set(splits)
+    for row in rows.values():
+        assert all(float(row[s]) > 0 for s in splits), row
+    for variant in ("aniformer_full", "cross_shuffle_both"):
+        assert (out / "runs" / variant / "best.pt").is_file()
+    assert "| AniFormer (full) |" in (out / "ablation.md").read_text()
+
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    runs = client.search_runs([client.get_experiment_by_name("aniformer").experiment_id])
+    (parent,) = [r for r in runs if r.data.tags.get("kind") == "ablation"]
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id]
+    assert parent.info.status == "FINISHED" and len(children) == 2
+    assert all(c.info.status == "FINISHED" and client.get_metric_history(c.info.run_id, "pmd_unseen") for c in children)
+    assert parent.data.metrics["pmd_unseen.cross_shuffle_both"] == pytest.approx(
+        float(rows["cross, shuffle both"]["unseen"]), rel=1e-4)
+
+    # Again: every variant is kept, nothing retrains, the same table comes out.
+    second = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert second.returncode == 0, second.stdout[-3000:] + second.stderr[-3000:]
+    assert second.stdout.count("kept:") == 2 and "training (" not in second.stdout
+    with open(out / "ablation.csv") as f:
+        assert {r["method"]: r for r in csv.DictReader(f)} == rows
