@@ -135,3 +135,38 @@ def test_forward_memory_grows_linearly_not_quadratically_in_vertices():
         # ~7 activations' worth was measured at V=32k; a dense kernel needs >= one V x V map (4-7 GB here).
         assert peak < 16 * activation_mb, (v, peak, activation_mb)
         assert peak < dense_map_mb / 20, (v, peak, dense_map_mb)
+
+
+@pytest.mark.parametrize("switch", SWITCHES, ids=lambda s: "-".join(f"{k}={v}" for k, v in s.items()) or "paper")
+def test_attention_runs_on_the_fused_kernels_alone(switch):
+    """With the math kernel ruled out, every attention call must still find a fused (flash or
+    memory-efficient) kernel: a non-contiguous head dim or a materialised mask would raise here.
+    The same q/k/v layout is what the GPU's flash/cuDNN kernels need (CPU has a flash kernel too)."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    torch.manual_seed(0)
+    model = AniFormer(AniFormerConfig(**TINY, **switch))
+    driving, target = torch.randn(2, 3, 40, 3), torch.randn(2, 55 if switch.get("pool_driving") else 40, 3)
+    with sdpa_kernel([SDPBackend.MATH]):
+        reference = model(driving, target)
+    with sdpa_kernel([SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION]):
+        out = model(driving, target)
+        out.square().mean().backward()
+    torch.testing.assert_close(out, reference, atol=1e-5, rtol=1e-4)
+
+
+def test_bf16_autocast_stays_close_to_fp32():
+    """The mixed-precision path of training (bf16 autocast; instance-norm statistics in fp32)."""
+    torch.manual_seed(0)
+    model = AniFormer(AniFormerConfig(**TINY, attention="cross", temporal="attention"))
+    with torch.no_grad():
+        for p in model.parameters():  # open the gates so attention contributes
+            if p.numel() == 1:
+                p.fill_(0.5)
+    driving, target = torch.randn(2, 3, 60, 3) * 0.3, torch.randn(2, 60, 3) * 0.3
+    reference = model(driving, target)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        low = model(driving, target)
+    assert low.dtype == torch.bfloat16
+    relative = (low.float() - reference).norm() / reference.norm()
+    assert 0 < relative < 0.03, relative
