@@ -232,3 +232,31 @@ class AniFormer(nn.Module):
         if self.config.head == "regression":
             x = x.mean(dim=1, keepdim=True)  # average over the sequence, one output mesh
         return 2 * torch.tanh(self.to_xyz(x))
+
+    def forward_flops(self, v1: int, v2: int | None = None) -> int:
+        """Matmul FLOPs (2 per multiply-add) of one forward window with V1 driving and V2 target
+        vertices, counted from the layer plan. A training step costs ~3x that (forward + backward,
+        as nanoGPT's `estimate_mfu` counts); model FLOP utilisation = 3 * this * windows/s / peak."""
+        cfg = self.config
+        v2 = v1 if v2 is None else v2
+        T, feature_dim, cross = cfg.window, cfg.extractor_channels[-1], cfg.attention == "cross"
+
+        def linear(rows: int, fan_in: int, fan_out: int) -> int:
+            return 2 * rows * fan_in * fan_out
+
+        widths = (3, *cfg.extractor_channels)
+        per_point = sum(linear(1, a, b) for a, b in zip(widths[:-1], widths[1:]))
+        flops = T * v1 * per_point + (v2 * per_point if cross else 0)  # the target's extractor: once per window
+        in_dim = feature_dim
+        for c in cfg.channels:
+            kv_rows, kv_dim = (v1, feature_dim) if cross else (v2, c)
+            flops += linear(T * v2, in_dim, c) + linear(T * v2, c, c) + linear(T * kv_rows, kv_dim, 2 * c)
+            flops += 4 * T * v2 * kv_rows * c  # q k^T and A v over all heads (eq. 2)
+            if cfg.temporal == "attention":
+                flops += linear(T * v2, c, 3 * c) + 4 * v2 * T * T * c
+            flops += 3 * (2 * linear(v2, 3, c) + linear(T * v2, c, c))  # 3 SPAdaIN (scale, shift per window) + fc
+            in_dim = c
+        last = cfg.channels[-1]
+        if cfg.head == "regression":
+            return flops + linear(v2, last, last) + linear(v2, last, 3)
+        return flops + linear(T * v2, last, 3)

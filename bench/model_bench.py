@@ -4,9 +4,13 @@ The reference is the same layer plan run the way the paper's code runs it: fp32 
 that materialises the V x V map (PyTorch's math SDPA kernel computes softmax(q k^T) explicitly).
 Ours: `F.scaled_dot_product_attention` with its fused kernels, bf16 autocast on GPUs with bf16.
 Each measurement runs in its own process so peak memory is not polluted by the previous one.
+Throughput is also given as model FLOP/s: `AniFormer.forward_flops` (the layer plan's matmuls,
+checked against torch's FLOP counter in tests/test_model.py) per forward, 3x that per training
+step, as nanoGPT's `estimate_mfu` counts; MFU = that over `--peak-tflops` (the device's dense peak
+for the dtype, e.g. ~989 for an H100 SXM in bf16; the design notes use ~790).
 
     python bench/model_bench.py --device cpu --vertices 1229 --window 3 --batch 1
-    python bench/model_bench.py --device cuda --vertices 6890 12272 --batch 1 16
+    python bench/model_bench.py --device cuda --vertices 6890 12272 --batch 1 16 --peak-tflops 989
 Prints one Markdown row per (implementation, V, batch).
 """
 
@@ -78,9 +82,11 @@ def measure(impl: str, device: str, vertices: int, window: int, batch: int, step
         peak_gib = torch.cuda.max_memory_allocated() / 2**30
     else:  # the process high-water mark above what model + inputs already held
         peak_gib = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before) / 2**20
+    flops = model.forward_flops(vertices)
     return dict(impl=impl, device=device, vertices=vertices, window=window, batch=batch,
                 forward_ms=forward_s * 1e3, step_ms_per_sample=step_s * 1e3 / batch, peak_gib=peak_gib,
-                dtype="bf16" if use_bf16 else "fp32")
+                dtype="bf16" if use_bf16 else "fp32", forward_tflops=flops / forward_s / 1e12,
+                train_tflops=3 * flops * batch / step_s / 1e12)
 
 
 def main() -> None:
@@ -92,14 +98,16 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--impl", choices=IMPLEMENTATIONS, nargs="+", default=list(IMPLEMENTATIONS))
+    parser.add_argument("--peak-tflops", type=float, default=None, help="dense peak of the device, for MFU")
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # child process: one measurement
     args = parser.parse_args()
     if args.one:
         print(json.dumps(measure(args.impl[0], args.device, args.vertices[0], args.window, args.batch[0],
                                  args.steps, args.threads)))
         return
-    print("| impl | device | dtype | V | T | batch | forward B=1 (ms) | train step / sample (ms) | peak (GiB) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| impl | device | dtype | V | T | batch | forward B=1 (ms) | train step / sample (ms) | peak (GiB) "
+          "| forward TFLOP/s | train TFLOP/s | train MFU |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for v in args.vertices:
         for batch in args.batch:
             for impl in args.impl:
@@ -109,11 +117,13 @@ def main() -> None:
                 run = subprocess.run(cmd, capture_output=True, text=True)
                 if run.returncode != 0:
                     last = (run.stderr.strip().splitlines() or ["?"])[-1]
-                    print(f"| {impl} | {args.device} | | {v} | {args.window} | {batch} | failed: {last[:80]} | | |")
+                    print(f"| {impl} | {args.device} | | {v} | {args.window} | {batch} | failed: {last[:80]} | | | | | |")
                     continue
                 r = json.loads(run.stdout.strip().splitlines()[-1])
+                mfu = f"{r['train_tflops'] / args.peak_tflops:.1%}" if args.peak_tflops else ""
                 print(f"| {r['impl']} | {r['device']} | {r['dtype']} | {v} | {r['window']} | {batch} | "
-                      f"{r['forward_ms']:.1f} | {r['step_ms_per_sample']:.1f} | {r['peak_gib']:.2f} |", flush=True)
+                      f"{r['forward_ms']:.1f} | {r['step_ms_per_sample']:.1f} | {r['peak_gib']:.2f} | "
+                      f"{r['forward_tflops']:.3g} | {r['train_tflops']:.3g} | {mfu} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -170,3 +170,17 @@ def test_bf16_autocast_stays_close_to_fp32():
     assert low.dtype == torch.bfloat16
     relative = (low.float() - reference).norm() / reference.norm()
     assert 0 < relative < 0.03, relative
+
+
+@pytest.mark.parametrize("switch", SWITCHES, ids=lambda s: "-".join(f"{k}={v}" for k, v in s.items()) or "paper")
+@pytest.mark.parametrize("v1,v2", [(40, 40), (40, 55)])
+def test_forward_flops_match_torch_flop_counter(switch, v1, v2):
+    """The analytic count behind the benchmark's MFU equals what torch counts op by op (the math
+    SDPA kernel is used here because the counter has no formula for the CPU flash kernel)."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+    from torch.utils.flop_counter import FlopCounterMode
+
+    model = AniFormer(AniFormerConfig(**TINY, **switch))
+    with FlopCounterMode(display=False) as counter, sdpa_kernel([SDPBackend.MATH]), torch.no_grad():
+        model(torch.randn(2, 3, v1, 3), torch.randn(2, v2, 3))
+    assert counter.get_total_flops() == 2 * model.forward_flops(v1, v2)
