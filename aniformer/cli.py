@@ -105,6 +105,14 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             os.unlink(tmp)
 
 
+def job_name(name: str) -> str:
+    """A job name (`--name`): it names directories under `--out`, so it must be one plain path
+    component, never `..` or a path that leads elsewhere."""
+    if not name or name in (".", "..") or "/" in name or "\\" in name or "\0" in name:
+        raise UserError(f"--name {name!r}: must be a plain name (no '/', not '.' or '..')")
+    return name
+
+
 def check_output_dir(out: Path, overwrite: bool) -> None:
     """Refuse an `--out` that is a file, or a non-empty directory unless `overwrite`."""
     if out.exists() and not out.is_dir():

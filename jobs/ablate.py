@@ -23,7 +23,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import ArgumentParser, UserError, run  # noqa: E402
+from aniformer.cli import ArgumentParser, UserError, job_name, run  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -116,7 +116,7 @@ def main(argv: list[str]) -> None:
     if len({spec.data.center for spec in specs.values()}) > 1:
         raise UserError("ablation variants must share data.center (they are scored on the same pairs)")
     out = Path(args.out).resolve()
-    name = args.name or out.name
+    name = job_name(args.name or out.name)
     bank = Path(args.bank).resolve() if args.bank else out / "bank"
     out.mkdir(parents=True, exist_ok=True)
 
@@ -126,14 +126,14 @@ def main(argv: list[str]) -> None:
     from pipeline.ablation import slug
     from pipeline.cluster import connect
     from pipeline.data import prepare_bank
-    from pipeline.tracking import quiet_mlflow, start_job_run
+    from pipeline.tracking import quiet_mlflow, start_job_run, ui_hint
 
     quiet_mlflow()
     connect()
     first = next(iter(specs.values()))
     _, faces = prepare_bank(first.data, bank, generate=args.bank is None)
-    parent = start_job_run(name, {**first.to_dict(), "ablation": {slug(row): " ".join(overrides) or "(base)"
-                                                                  for row, overrides in ablation.variants.items()}},
+    variants = {slug(row): " ".join(overrides) or "(base)" for row, overrides in ablation.variants.items()}
+    parent = start_job_run(name, {**first.to_dict(), "ablation": {**variants, "common": " ".join(ablation.common)}},
                            experiment=args.experiment)
     parent.set_tags({"kind": "ablation"})
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
@@ -146,7 +146,8 @@ def main(argv: list[str]) -> None:
         table, splits = _evaluate(specs, checkpoints, bank, ablation, seed, pairs)
         notes = [f"Every variant: {first.train.epochs} epochs x {first.data.pairs_per_epoch} pairs, batch "
                  f"{first.train.batch_size}; scored on {pairs} pairs per split (seed {seed}) with the vertex "
-                 "shuffling it was trained with (copy-driver: unshuffled). Variants (overrides of the base config):", ""]
+                 "shuffling it was trained with (copy-driver: unshuffled). Variants (overrides of the base config"
+                 + (f", after `{' '.join(ablation.common)}` for every row" if ablation.common else "") + "):", ""]
         notes += [f"- {row}: `{' '.join(ablation.variants[row]) or '(base config)'}` — "
                   f"{specs[row].model_name}, {parameter_count(specs[row].model_name, specs[row].model):,} parameters, "
                   f"shuffle `{specs[row].data.shuffle}`" for row in specs]
@@ -172,7 +173,7 @@ def main(argv: list[str]) -> None:
     print(f"ablation {name}: {len(specs)} variants in {time.perf_counter() - started:.0f} s")
     print(f"table: {out / 'ablation.md'}, {out / 'ablation.csv'}")
     print(f"MLflow run: {parent.run_id} in {parent.uri}")
-    print(f"  compare the variants: mlflow ui --backend-store-uri {parent.uri}")
+    print(f"  compare the variants: {ui_hint(parent.uri)}")
 
 
 if __name__ == "__main__":

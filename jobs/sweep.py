@@ -22,7 +22,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import ArgumentParser, load_config, run  # noqa: E402
+from aniformer.cli import ArgumentParser, job_name, load_config, run  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -47,13 +47,13 @@ def main(argv: list[str]) -> None:
     for window in sweep.window:  # both ends of the window range must make valid runs
         RunSpec.from_config(apply_params(base, {"window": window}))
     out = Path(args.out).resolve()
-    name = args.name or out.name
+    name = job_name(args.name or out.name)
     bank = Path(args.bank).resolve() if args.bank else out / "bank"
     out.mkdir(parents=True, exist_ok=True)
 
     from pipeline.cluster import connect
     from pipeline.data import prepare_bank
-    from pipeline.tracking import Tracker, start_job_run, tracking_uri
+    from pipeline.tracking import Tracker, start_job_run, tracking_uri, ui_hint
     from pipeline.tune import best_row, build_tuner, experiment_exists, summarize, unfinished_trials, write_summary
 
     connect()
@@ -103,7 +103,7 @@ def main(argv: list[str]) -> None:
               f"rec={best['rec']:.3g} motion={best['motion']:.3g} appearance={best['appearance']:.3g} "
               f"window={best['window']}")
     print(f"MLflow parent run: {parent.run_id} in {parent.uri}")
-    print(f"  compare trials: mlflow ui --backend-store-uri {parent.uri}")
+    print(f"  compare trials: {ui_hint(parent.uri)}")
     if unfinished:
         print(f"interrupted: {len(unfinished)} trial(s) unfinished; run the same command again to resume",
               file=sys.stderr)

@@ -20,7 +20,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import ArgumentParser, load_config, run  # noqa: E402
+from aniformer.cli import ArgumentParser, job_name, load_config, run  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -41,13 +41,13 @@ def main(argv: list[str]) -> None:
 
     spec = RunSpec.from_config(config)  # bad config: one line before anything starts
     out = Path(args.out).resolve()
-    name = args.name or out.name
+    name = job_name(args.name or out.name)
     bank = Path(args.bank).resolve() if args.bank else out / "bank"
     out.mkdir(parents=True, exist_ok=True)
 
     from pipeline.cluster import connect
     from pipeline.data import prepare_bank
-    from pipeline.tracking import quiet_mlflow, start_job_run
+    from pipeline.tracking import quiet_mlflow, start_job_run, ui_hint
     from pipeline.train import train_job
 
     quiet_mlflow()
@@ -70,7 +70,7 @@ def main(argv: list[str]) -> None:
           f"unseen {metrics.get('pmd_unseen', float('nan')):.3f} (x1e-4)")
     print(f"checkpoints: {out / 'best.pt'} (best unseen PMD), {out / 'last.pt'}")
     print(f"MLflow run: {tracker.run_id} in {tracker.uri}")
-    print(f"  compare runs: mlflow ui --backend-store-uri {tracker.uri}")
+    print(f"  compare runs: {ui_hint(tracker.uri)}")
 
 
 if __name__ == "__main__":

@@ -29,6 +29,13 @@ def tracking_uri() -> str:
     return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{Path.cwd() / 'mlflow.db'}"
 
 
+def ui_hint(uri: str) -> str:
+    """How to look at the runs of store `uri`: `mlflow ui` on an embedded store, else the server's own UI."""
+    if uri.startswith(("http://", "https://")):
+        return f"open {uri} in a browser"
+    return f"mlflow ui --backend-store-uri {uri} --host 127.0.0.1"
+
+
 def _artifact_location(uri: str) -> str | None:
     """Artifacts beside an embedded sqlite store; a tracking server decides for itself."""
     if uri.startswith("sqlite:///"):

@@ -28,7 +28,7 @@ from ray.train.torch import TorchTrainer
 
 from aniformer.baselines import MODELS, build_model
 from aniformer.checkpoint import FILENAME, load_checkpoint, save_checkpoint, unwrap
-from aniformer.cli import UserError, from_dict
+from aniformer.cli import UserError, atomic_path, from_dict
 from aniformer.losses import LossConfig, loss_terms
 from aniformer.metrics import PMD_SCALE, pmd
 from pipeline.data import DataConfig as PairDataConfig
@@ -289,7 +289,8 @@ def train_job(spec: RunSpec, bank_dir: Path, out: Path, name: str, tracker: Trac
     if result.error:
         raise UserError(f"training failed: {type(result.error).__name__}: {str(result.error).splitlines()[0]}")
     for checkpoint, filename in ((best_checkpoint(result), "best.pt"), (result.checkpoint, "last.pt")):
-        with checkpoint.as_directory() as directory:
-            shutil.copyfile(Path(directory) / FILENAME, out / filename)
+        # Renamed into place: whatever stands at OUT/filename (a symlink too) is replaced, never written through.
+        with checkpoint.as_directory() as directory, atomic_path(out / filename) as tmp:
+            shutil.copyfile(Path(directory) / FILENAME, tmp)
     tracker.log_artifact(out / "best.pt", CHECKPOINT_ARTIFACT.rsplit("/", 1)[0])
     return result
