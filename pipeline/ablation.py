@@ -9,6 +9,7 @@ naming one (relative to the ablation config), plus::
       pairs: 500                  # evaluation pairs per split (default: data.eval_pairs)
       splits: [seen, unseen]      # default: every split of the bank
       copy_driver: true           # add the copy-driver row
+      common: [model.temporal=embedding]   # overrides applied to every variant first
       variants:                   # row name -> key=value overrides of the base config (as on the CLI)
         regression head: [model.head=regression, loss.motion=0, loss.appearance=0]
         full: []
@@ -36,11 +37,15 @@ class AblationConfig:
     """The `ablation:` section."""
 
     variants: dict = field(default_factory=dict)
+    common: tuple = ()  # key=value overrides of every variant, before its own
     pairs: int | None = None
     splits: tuple = ()
     copy_driver: bool = True
 
     def __post_init__(self):
+        if not all(isinstance(o, str) for o in self.common):
+            raise ValueError("common must be a list of 'key=value' strings")
+        object.__setattr__(self, "common", tuple(self.common))
         if not isinstance(self.variants, dict) or not self.variants:
             raise ValueError("variants must map row names to lists of key=value overrides")
         for name, overrides in self.variants.items():
@@ -82,7 +87,7 @@ def variant_specs(base: dict, ablation: AblationConfig) -> dict:
     specs = {}
     for name, overrides in ablation.variants.items():
         try:
-            spec = RunSpec.from_config(apply_overrides(base, overrides))
+            spec = RunSpec.from_config(apply_overrides(base, [*ablation.common, *overrides]))
         except UserError as e:
             raise UserError(f"ablation variant {name!r}: {e}") from None
         for section, key in BUDGET:

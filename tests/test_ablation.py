@@ -39,6 +39,10 @@ def test_shipped_ablation_config_has_the_paper_rows_and_one_budget():
     assert specs["+ L_a"].loss.appearance > 0 == specs["+ L_a"].loss.motion
     assert specs["NPT (frame by frame)"].model_name == "npt"
     assert {s.train.epochs for s in specs.values()} == {full.train.epochs}
+    # the paper's per-frame embedding everywhere (common), except the row that is the default config
+    assert full.model.temporal == "embedding" and specs["no head"].model.temporal == "embedding"
+    from pipeline.train import RunSpec
+    assert specs["temporal attention"].to_dict() == RunSpec.from_config(default).to_dict()
 
 
 def test_bad_ablation_configs_fail_with_one_line(tmp_path):
@@ -55,11 +59,12 @@ def test_bad_ablation_configs_fail_with_one_line(tmp_path):
     fails(write_config(tmp_path / "d.yaml", {"variants": {}}), "variants must map")
     fails(write_config(tmp_path / "e.yaml", {"variants": {"x": []}}, train={"epochs": 3}), "base: .* and run sections")
     fails(write_config(tmp_path / "f.yaml", {"variants": {"x": []}}), "unknown key", ["ablation.depth=3"])
+    fails(write_config(tmp_path / "h.yaml", {"common": [3], "variants": {"x": []}}), "common must be")
     # overrides on the command line apply to the base config, variants on top
-    base, ablation = load_ablation_config(write_config(tmp_path / "g.yaml", {"variants": {"x": ["train.lr=0.5"]}}),
-                                          ["train.epochs=1"])
+    base, ablation = load_ablation_config(write_config(tmp_path / "g.yaml", {
+        "common": ["train.lr=0.1", "model.heads=2"], "variants": {"x": ["train.lr=0.5"]}}), ["train.epochs=1"])
     (spec,) = variant_specs(base, ablation).values()
-    assert (spec.train.epochs, spec.train.lr) == (1, 0.5)
+    assert (spec.train.epochs, spec.train.lr, spec.model.heads) == (1, 0.5, 2)
 
 
 @pytest.mark.slow
