@@ -1,0 +1,533 @@
+"""System test: a real local Ray cluster started the way cluster.yaml starts one, jobs submitted with
+`ray job submit`, tracked by our MLflow server and looked at in a real browser.
+
+One module-scoped cluster (the CI machine has 2 cores, so it is started once):
+
+- an MLflow tracking server (`python -m pipeline.mlflow_server`, what the cluster's head runs) on
+  127.0.0.1 with its store and a backup directory;
+- `ray start --head --block` bound to 127.0.0.1 with token authentication, and two worker nodes
+  (`ray start --address=... --block`), each in its own process group and temp dir, every port
+  chosen free (two Ray instances on one machine otherwise collide, e.g. on the dashboard agent's
+  52365 or the autoscaler's metrics port 44217);
+- every node started with MLFLOW_TRACKING_URI in its environment, as cluster.yaml does, so jobs log
+  to the server without being told (no runtime_env).
+
+Then, in order: what listens where, the token check, the tiny training job through `ray job submit`
+and a tiny sweep submitted as soon as the training job's mesh bank exists (both run at once), the
+MLflow UI in headless Chromium (DOM text + screenshot), the server's backup on stop, and the local
+Ray instance a job starts without a cluster. Everything is stopped through its own process group, never with `ray stop` (which
+would kill every Ray on the machine).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import secrets
+import shutil
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+OBJECT_STORE = str(256 * 1024**2)
+TRAIN = ["train.epochs=1", "data.workers=2"]  # 2 generation tasks: the machine has 2 cores
+# Up to two trials at once, spread over the nodes: a trial holds 0.05 + 0.5 CPU and its Ray Data reads
+# 1 more (docs/sweeps.md); the cluster has 4 logical CPUs (head 2, workers 1 each; 2 physical cores),
+# and the training job holds 1.5 of them while it runs beside the sweep.
+SWEEP = ["sweep.num_samples=2", "sweep.search=random", "sweep.max_concurrent=2", "sweep.memory_limit_gb=16",
+         "train.epochs=1", "train.render_every=1"]
+
+
+# ------------------------------------------------------------------ who listens where (/proc)
+
+
+def free_ports(n: int) -> list[int]:
+    """n distinct free TCP ports below the kernel's ephemeral range: a port handed out by `bind(0)`
+    could be taken by any process binding port 0 (Ray's own gRPC servers do) before we use it."""
+    import random
+
+    low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    candidates = random.sample(range(20000, low), min(4 * n + 50, low - 20000))  # above Ray's worker ports
+    chosen = []
+    for port in candidates:
+        with socket.socket() as s:
+            try:
+                s.bind(("", port))
+            except OSError:
+                continue
+        chosen.append(port)
+        if len(chosen) == n:
+            return chosen
+    raise RuntimeError(f"could not find {n} free ports")
+
+
+def group_pids(pgid: int) -> set[int]:
+    pids = set()
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == pgid:
+                pids.add(int(entry.name))
+    return pids
+
+
+def tree_pids(root: int) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except OSError:
+                continue
+            children.setdefault(ppid, []).append(int(entry.name))
+    pids, todo = set(), [root]
+    while todo:
+        pid = todo.pop()
+        pids.add(pid)
+        todo += children.get(pid, [])
+    return pids
+
+
+def _address(hex_address: str) -> str:
+    raw = bytes.fromhex(hex_address)
+    if len(raw) == 4:
+        return socket.inet_ntop(socket.AF_INET, raw[::-1])
+    return socket.inet_ntop(socket.AF_INET6, b"".join(raw[i:i + 4][::-1] for i in range(0, 16, 4)))
+
+
+def listening_sockets(pids: set[int]) -> dict[tuple[str, int], int]:
+    """{(address, port): pid} of the TCP sockets in LISTEN state held by the given processes."""
+    inodes = {}
+    for pid in pids:
+        try:
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
+                try:
+                    target = os.readlink(fd)
+                except OSError:
+                    continue
+                if target.startswith("socket:["):
+                    inodes[target[8:-1]] = pid
+        except OSError:
+            continue
+    found = {}
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] == "0A" and fields[9] in inodes:  # 0A = LISTEN
+                address, port = fields[1].split(":")
+                found[(_address(address), int(port, 16))] = inodes[fields[9]]
+    return found
+
+
+def listeners(pids: set[int]) -> set[tuple[str, int]]:
+    return set(listening_sockets(pids))
+
+
+def command(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:200]
+    except OSError:
+        return "?"
+
+
+def addresses(port: int, pids: set[int]) -> set[str]:
+    return {a.removeprefix("::ffff:") for a, p in listeners(pids) if p == port}
+
+
+WILDCARD = {"0.0.0.0", "::"}
+
+
+# ------------------------------------------------------------------ the cluster
+
+
+@dataclass
+class Cluster:
+    root: Path
+    env: dict
+    dashboard: str
+    gcs: str
+    mlflow: str
+    mlflow_port: int
+    dashboard_port: int
+    ray_rpc_ports: set[int]  # Ray's token-authenticated RPC ports (all interfaces by Ray's design)
+    metrics_ports: set[int]  # Ray's Prometheus exporters (all interfaces; read-only metrics)
+    procs: dict[str, subprocess.Popen] = field(default_factory=dict)
+    jobs: dict[str, str] = field(default_factory=dict)  # test name -> Ray job submission id
+    logs: dict[str, Path] = field(default_factory=dict)
+
+    def ray(self, *args: str, env: dict | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
+        return subprocess.run([str(BIN / "ray"), *args], env=env or self.env, capture_output=True, text=True,
+                              timeout=timeout)
+
+    def tail(self, name: str, n: int = 3000) -> str:
+        return self.logs[name].read_text(errors="replace")[-n:] if name in self.logs else ""
+
+    def pids(self) -> set[int]:
+        """Every process we started: each node's process group, and the MLflow wrapper's descendants
+        (it runs `mlflow server` in a process group of its own)."""
+        alive = [p.pid for p in self.procs.values() if p.poll() is None]
+        return set().union(*(group_pids(pid) | tree_pids(pid) for pid in alive))
+
+    def alive_nodes(self) -> int:
+        request = urllib.request.Request(f"{self.dashboard}/api/v0/nodes?limit=100",
+                                         headers={"Authorization": f"Bearer {self.env['RAY_AUTH_TOKEN']}"})
+        try:
+            with urllib.request.urlopen(request, timeout=20) as r:
+                nodes = json.loads(r.read())["data"]["result"]["result"]
+        except (OSError, KeyError, ValueError):
+            return 0
+        return sum(1 for n in nodes if n.get("state") == "ALIVE")
+
+
+def _start(cluster: Cluster, name: str, cmd: list[str], **env: str) -> None:
+    log = cluster.root / f"{name}.log"
+    cluster.logs[name] = log
+    with open(log, "w") as f:
+        cluster.procs[name] = subprocess.Popen(cmd, env={**cluster.env, **env}, cwd=ROOT, stdout=f,
+                                               stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _stop(procs: list[subprocess.Popen], grace: float = 10) -> None:
+    """SIGTERM each process group (`ray start --block` tears its node down; our MLflow wrapper stops
+    its server), then SIGKILL whatever is left after `grace` seconds."""
+    for p in procs:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGTERM)
+    deadline = time.time() + grace
+    for p in procs:
+        try:
+            p.wait(timeout=max(1, deadline - time.time()))
+        except subprocess.TimeoutExpired:
+            pass
+        for pid in group_pids(p.pid):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        if p.poll() is None:
+            p.wait(timeout=30)
+
+
+def _wait(what: str, ok, cluster: Cluster, timeout: float = 240, every: float = 2, tolerate=()):
+    deadline = time.time() + timeout
+    while True:
+        result = ok()
+        if result:
+            return result
+        dead = [n for n, p in cluster.procs.items() if p.poll() is not None and n not in tolerate]
+        assert not dead, f"{', '.join(dead)} exited while waiting for {what}:\n" + "\n".join(cluster.tail(n) for n in dead)
+        assert time.time() < deadline, f"timed out waiting for {what}"
+        time.sleep(every)
+
+
+def _healthy(url: str) -> bool:
+    try:
+        with urllib.request.urlopen(f"{url}/health", timeout=5) as r:
+            return r.status == 200
+    except OSError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    root = tmp_path_factory.mktemp("system")
+    (gcs, dashboard, client, head_agent, head_agent_grpc, head_metrics, head_runtime_env, head_nm, head_om,
+     autoscaler_metrics, mlflow_port, *worker_ports) = free_ports(11 + 2 * 6)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("RAY_", "MLFLOW_"))}
+    env["PATH"] = f"{BIN}:{env['PATH']}"  # the job's `python` must be this venv's
+    # Token authentication, as on the cluster: the job API runs code for whoever reaches it.
+    env.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=secrets.token_hex(32), RAY_DEDUP_LOGS="0",
+               MLFLOW_TRACKING_URI=f"http://127.0.0.1:{mlflow_port}")
+    # One temp dir per node, short (Ray's socket paths have a length limit): nodes started at the same
+    # moment in one temp dir race for the same socket names ("bind: Address already in use").
+    temp_dirs = [tempfile.mkdtemp(prefix="ray", dir="/tmp") for _ in range(3)]
+    c = Cluster(root=root, env=env, dashboard=f"http://127.0.0.1:{dashboard}", gcs=f"127.0.0.1:{gcs}",
+                mlflow=f"http://127.0.0.1:{mlflow_port}", mlflow_port=mlflow_port, dashboard_port=dashboard,
+                ray_rpc_ports={gcs, head_agent_grpc, head_nm, head_om}, metrics_ports={head_metrics, autoscaler_metrics})
+    try:
+        _start(c, "mlflow", [sys.executable, "-m", "pipeline.mlflow_server", "--host", "127.0.0.1",
+                             "--port", str(mlflow_port), "--store", str(root / "mlflow"),
+                             "--backup", str(root / "mlflow-backup"), "--backup-every", "3600"])
+        common = ["--block", "--node-ip-address=127.0.0.1", f"--object-store-memory={OBJECT_STORE}"]
+        _start(c, "head", [str(BIN / "ray"), "start", "--head", *common, "--num-cpus=2", f"--temp-dir={temp_dirs[0]}",
+                           f"--port={gcs}",
+                           "--include-dashboard=true", "--dashboard-host=127.0.0.1", f"--dashboard-port={dashboard}",
+                           f"--ray-client-server-port={client}", f"--dashboard-agent-listen-port={head_agent}",
+                           f"--dashboard-agent-grpc-port={head_agent_grpc}", f"--metrics-export-port={head_metrics}",
+                           f"--runtime-env-agent-port={head_runtime_env}", f"--node-manager-port={head_nm}",
+                           f"--object-manager-port={head_om}"],
+               AUTOSCALER_METRIC_PORT=str(autoscaler_metrics))  # fixed 44217 otherwise: one per machine
+        _wait("the head", lambda: c.alive_nodes() == 1, c)  # workers join a head that is fully up
+        workers = {}
+        for i in range(2):
+            agent, agent_grpc, metrics, runtime_env, nm, om = worker_ports[6 * i:6 * i + 6]
+            c.ray_rpc_ports |= {agent_grpc, nm, om}
+            c.metrics_ports.add(metrics)
+            workers[f"worker{i}"] = [str(BIN / "ray"), "start", f"--address={c.gcs}", *common, "--num-cpus=1",
+                                     f"--temp-dir={temp_dirs[i + 1]}",
+                                     f"--dashboard-agent-listen-port={agent}", f"--dashboard-agent-grpc-port={agent_grpc}",
+                                     f"--metrics-export-port={metrics}", f"--runtime-env-agent-port={runtime_env}",
+                                     f"--node-manager-port={nm}", f"--object-manager-port={om}"]
+            _start(c, f"worker{i}", workers[f"worker{i}"])
+
+        def joined() -> bool:
+            # `ray start` gives a raylet 30 s to register (hard-coded in Ray 2.60): on a loaded 2-core
+            # machine that can pass. Such a worker exits; clear its process group and start it again.
+            for name, cmd in workers.items():
+                proc = c.procs[name]
+                if proc.poll() is not None:
+                    assert "timed out during startup" in c.tail(name), f"{name} exited:\n{c.tail(name)}"
+                    _stop([proc], grace=5)
+                    c.logs[name].rename(c.logs[name].with_suffix(f".{time.time():.0f}.log"))
+                    _start(c, name, cmd)
+            return c.alive_nodes() == 3
+
+        _wait("three alive nodes", joined, c, timeout=400, tolerate=set(workers))
+        _wait("the MLflow server", lambda: _healthy(c.mlflow), c)
+        yield c
+    finally:
+        _stop([c.procs[n] for n in ("worker0", "worker1", "head", "mlflow") if n in c.procs])
+        for i, temp_dir in enumerate(temp_dirs):  # keep the nodes' own logs beside the test's
+            for log in Path(temp_dir).glob("session_*/logs/raylet*"):
+                (root / f"node{i}-logs").mkdir(exist_ok=True)
+                shutil.copyfile(log, root / f"node{i}-logs" / log.name)
+            shutil.rmtree(temp_dir, ignore_errors=True)
+
+
+def submit(c: Cluster, name: str, *entrypoint: str) -> str:
+    """`ray job submit --no-wait` of this checkout (retried while the head's job agent registers); the job id."""
+    job_id = f"{name}-{secrets.token_hex(4)}"
+    for _ in range(30):
+        job = c.ray("job", "submit", "--address", c.dashboard, "--working-dir", str(ROOT), "--submission-id", job_id,
+                    "--no-wait", "--", *entrypoint)
+        if job.returncode == 0:
+            c.jobs[name] = job_id
+            return job_id
+        assert "No available agent to submit job" in job.stdout + job.stderr, job.stdout[-2000:] + job.stderr[-2000:]
+        time.sleep(2)
+    raise AssertionError(f"the job agent never came up: {job.stderr[-2000:]}")
+
+
+def _jobs_api(c: Cluster, path: str) -> dict:
+    request = urllib.request.Request(f"{c.dashboard}/api/jobs/{path}",
+                                     headers={"Authorization": f"Bearer {c.env['RAY_AUTH_TOKEN']}"})
+    with urllib.request.urlopen(request, timeout=30) as r:
+        return json.loads(r.read())
+
+
+DONE = ("SUCCEEDED", "FAILED", "STOPPED")
+
+
+def job_status(c: Cluster, name: str) -> str:
+    return _jobs_api(c, c.jobs[name])["status"]
+
+
+def wait_for_job(c: Cluster, name: str, timeout: float = 900) -> tuple[str, str]:
+    """(final status, the job's output); the output is also kept in ROOT/<name>.log."""
+    deadline = time.time() + timeout
+    while (status := job_status(c, name)) not in DONE:
+        assert time.time() < deadline, f"job {name} still {status} after {timeout:.0f} s"
+        time.sleep(3)
+    logs = _jobs_api(c, f"{c.jobs[name]}/logs")["logs"]
+    (c.root / f"{name}.log").write_text(logs)
+    return status, logs
+
+
+def mlflow_runs(c: Cluster) -> tuple[str, list[dict]]:
+    def post(path: str, body: dict) -> dict:
+        request = urllib.request.Request(f"{c.mlflow}/api/2.0/mlflow/{path}", json.dumps(body).encode(),
+                                         {"Content-Type": "application/json"})
+        with urllib.request.urlopen(request, timeout=30) as r:
+            return json.loads(r.read())
+
+    with urllib.request.urlopen(f"{c.mlflow}/api/2.0/mlflow/experiments/get-by-name?experiment_name=aniformer",
+                                timeout=30) as r:
+        experiment = json.loads(r.read())["experiment"]["experiment_id"]
+    return experiment, post("runs/search", {"experiment_ids": [experiment], "max_results": 1000}).get("runs", [])
+
+
+def tags(run: dict) -> dict:
+    return {t["key"]: t["value"] for t in run["data"].get("tags", [])}
+
+
+# ------------------------------------------------------------------ the tests, in order
+
+
+def test_services_listen_only_where_intended(cluster):
+    ours = cluster.pids()
+    # The dashboard / job API and MLflow: 127.0.0.1 only, never all interfaces.
+    assert addresses(cluster.dashboard_port, ours) == {"127.0.0.1"}
+    assert addresses(cluster.mlflow_port, ours) == {"127.0.0.1"}
+    # Ray itself listens on all interfaces for its node-to-node RPC (GCS, raylet, agents' gRPC; token-
+    # checked, next test) and its Prometheus metrics, whatever the flags (Ray 2.60): only on the ports
+    # we gave it. (On the cluster the security group keeps all of them inside the cluster.)
+    expected = cluster.ray_rpc_ports | cluster.metrics_ports
+    unexpected = {f"{address}:{port} {command(pid)}" for (address, port), pid in listening_sockets(ours).items()
+                  if address in WILDCARD and port not in expected}
+    assert not unexpected, f"unexpected listeners on all interfaces: {unexpected}"
+
+
+def test_a_wrong_token_is_refused(cluster):
+    wrong = {**cluster.env, "RAY_AUTH_TOKEN": "0" * 64}
+    intruder = cluster.ray("job", "list", "--address", cluster.dashboard, env=wrong)
+    assert intruder.returncode != 0 and "token" in intruder.stderr.lower(), intruder.stderr[-2000:]
+    # The GCS (listening on all interfaces) refuses a driver with the wrong token too.
+    started = time.time()
+    driver = subprocess.run([sys.executable, "-c", f"import ray; ray.init(address={cluster.gcs!r})"],
+                            env={**wrong, "RAY_NUM_REDIS_GET_RETRIES": "3"}, capture_output=True, text=True, timeout=180)
+    print(f"wrong-token driver refused after {time.time() - started:.1f} s")
+    print((driver.stdout + driver.stderr)[-1500:])
+    assert driver.returncode != 0 and "auth" in (driver.stdout + driver.stderr).lower(), driver.stderr[-2000:]
+    assert cluster.alive_nodes() == 3  # the right token still works
+
+
+def test_training_job_submitted_to_the_cluster(cluster):
+    out = cluster.root / "runs" / "tiny"
+    out.mkdir(parents=True)
+    # A symlink planted in --out must be replaced, not written through (writes cannot escape --out).
+    outside = cluster.root / "outside.txt"
+    outside.write_text("untouched")
+    (out / "last.pt").symlink_to(outside)
+    submit(cluster, "train_job", "python", "jobs/train.py", "--config", "configs/tiny.yaml", "--out", str(out), *TRAIN)
+    # The sweep (next test) trains on the bank this job generates: start it as soon as the bank is
+    # complete, so that the two jobs share the cluster, as they would on a real one.
+    _wait("the training job's mesh bank", lambda: (out / "bank" / "manifest.json").is_file()
+          or job_status(cluster, "train_job") in DONE, cluster, timeout=600, every=3)
+    if (out / "bank" / "manifest.json").is_file():
+        submit(cluster, "sweep_job", "python", "jobs/sweep.py", "--config", "configs/sweep_tiny.yaml",
+               "--out", str(cluster.root / "runs" / "sweep"), "--bank", str(out / "bank"), *SWEEP)
+    status, logs = wait_for_job(cluster, "train_job")
+    assert status == "SUCCEEDED", logs[-5000:]
+    assert (out / "best.pt").is_file() and (out / "last.pt").exists()
+    # Logged to the server through the nodes' environment (no runtime_env), metrics by the trainer.
+    _, runs = mlflow_runs(cluster)
+    (run,) = [r for r in runs if r["info"]["run_name"] == "tiny"]
+    assert run["info"]["status"] == "FINISHED"
+    assert {m["key"] for m in run["data"].get("metrics", [])} >= {"pmd_unseen", "loss"}
+
+
+def test_a_symlink_planted_in_out_is_replaced_not_written_through(cluster):
+    last = cluster.root / "runs" / "tiny" / "last.pt"
+    assert last.exists(), "the training job did not run"
+    assert (cluster.root / "outside.txt").read_bytes() == b"untouched" and not last.is_symlink()
+
+
+def test_sweep_job_submitted_to_the_cluster(cluster):
+    assert "sweep_job" in cluster.jobs, "not submitted: the training job made no mesh bank"
+    status, logs = wait_for_job(cluster, "sweep_job")
+    assert status == "SUCCEEDED", logs[-5000:]
+    rows = list(csv.DictReader((cluster.root / "runs" / "sweep" / "summary.csv").open()))
+    assert len(rows) == 2 and all(r["status"] in ("ok", "early_stopped", "adjusted_memory") for r in rows), rows
+    _, runs = mlflow_runs(cluster)
+    (parent,) = [r for r in runs if r["info"]["run_name"] == "sweep"]
+    children = [r for r in runs if tags(r).get("mlflow.parentRunId") == parent["info"]["run_id"]]
+    assert parent["info"]["status"] == "FINISHED" and len(children) == 2
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (.ci/run installs Debian's chromium)")
+def test_mlflow_ui_in_a_real_browser_shows_the_runs(cluster, tmp_path):
+    experiment, runs = mlflow_runs(cluster)
+    names = {r["info"]["run_name"] for r in runs}
+    assert {"tiny", "sweep"} <= names
+    profile = tmp_path / "profile"
+    profile.mkdir()
+    shot = tmp_path / "mlflow_ui.png"
+    cmd = [CHROMIUM, "--headless", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+           f"--user-data-dir={profile}", "--window-size=1600,900", "--hide-scrollbars",
+           "--virtual-time-budget=30000",  # the UI is a React app: let it fetch and render the runs
+           f"--screenshot={shot}", "--dump-dom", f"{cluster.mlflow}/#/experiments/{experiment}/runs"]
+    if os.geteuid() == 0:
+        cmd.insert(2, "--no-sandbox")  # Chromium's sandbox refuses to run as root
+    dom = ""
+    for _ in range(3):  # a loaded machine may render before the runs table has arrived
+        page = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        dom = page.stdout
+        if "tiny" in dom and "sweep" in dom:
+            break
+    assert ">tiny<" in dom and ">sweep<" in dom, dom[-3000:]
+    assert "matching runs" in dom or "Run Name" in dom
+    image = _png_stats(shot)
+    assert image["width"] >= 1200 and image["height"] >= 800
+    assert image["colours"] > 200 and 0.05 < image["ink"] < 0.95, image  # a rendered page, not a blank one
+    keep = os.environ.get("ANIFORMER_KEEP_SCREENSHOT")
+    if keep:
+        shutil.copyfile(shot, keep)
+
+
+def _png_stats(path: Path) -> dict:
+    import numpy as np
+    from PIL import Image  # matplotlib's dependency
+
+    with Image.open(path) as im:
+        rgb = np.asarray(im.convert("RGB"))
+    packed = (rgb[..., 0].astype(np.int64) << 16) | (rgb[..., 1].astype(np.int64) << 8) | rgb[..., 2]
+    return {"width": rgb.shape[1], "height": rgb.shape[0], "colours": len(np.unique(packed)),
+            "ink": float((rgb.min(axis=-1) < 240).mean())}  # share of pixels that are not (near) white
+
+
+def test_stopping_the_mlflow_server_leaves_a_backup_with_the_runs(cluster):
+    server = cluster.procs["mlflow"]
+    started = tree_pids(server.pid)
+    os.kill(server.pid, signal.SIGTERM)  # the wrapper: stops its server, then backs the store up
+    server.wait(timeout=120)
+    assert server.returncode == 0, cluster.tail("mlflow")
+    assert not [pid for pid in started if _running(pid)], "the MLflow server left processes behind"
+    with sqlite3.connect(cluster.root / "mlflow-backup" / "mlflow.db") as db:
+        names = {name for (name,) in db.execute("select name from runs")}
+    assert {"tiny", "sweep"} <= names
+
+
+def _running(pid: int) -> bool:
+    try:
+        return (Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]) != "Z"
+    except OSError:
+        return False
+
+
+def test_jobs_without_a_cluster_start_a_local_ray_on_localhost_with_token_auth(tmp_path):
+    """jobs/*.py without RAY_ADDRESS call pipeline.cluster.connect(): a private local Ray instance."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    env["RAY_TMPDIR"] = tempfile.mkdtemp(prefix="ray", dir="/tmp")
+    script = ("import json, sys, ray\n"
+              "from pipeline.cluster import connect\n"
+              "from ray._raylet import AuthenticationMode, get_authentication_mode\n"
+              "connect()\n"
+              "info = ray._private.worker.global_worker.node.address_info\n"
+              "token = get_authentication_mode() == AuthenticationMode.TOKEN\n"
+              "print(json.dumps({'dashboard': info['webui_url'], 'token': token}), flush=True)\n"
+              "sys.stdin.read()\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, env=env, stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+    try:
+        info = json.loads(proc.stdout.readline())
+        port = int(info["dashboard"].rsplit(":", 1)[1])
+        assert addresses(port, tree_pids(proc.pid)) == {"127.0.0.1"}
+        assert info["token"], "the local Ray instance runs without token authentication"
+    finally:
+        proc.stdin.close()
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+        for pid in group_pids(proc.pid):
+            os.kill(pid, signal.SIGKILL)
+        shutil.rmtree(env["RAY_TMPDIR"], ignore_errors=True)
