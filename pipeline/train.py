@@ -245,31 +245,45 @@ def train_func(loop_config: dict) -> None:
             ray.train.report(metrics, checkpoint=report_checkpoint)
 
 
-def fit(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
-        faces: np.ndarray) -> ray.train.Result:
-    """Train `spec` on the pairs of `bank_dir`; checkpoints under `storage/name` (resumed if present)."""
+def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
+                  faces: np.ndarray, *, loop=train_func, loop_config: dict | None = None,
+                  callbacks: list | None = None) -> TorchTrainer:
+    """The TorchTrainer of a run: pair datasets from the bank, scaling, checkpoints (best by unseen
+    PMD, plus the latest) and failure handling. Checkpoints live under `storage/name` and a trainer
+    re-created with the same name resumes from them. `loop`, `loop_config` (merged into the loop's
+    config) and `callbacks` let a sweep trial add its own reporting to the same training."""
     cfg = spec.train
     datasets = {"train": pair_dataset(bank_dir, "train", spec.data, epochs=cfg.epochs)}
     for split in EVAL_SPLITS:
         datasets[split] = pair_dataset(bank_dir, split, spec.data)
-    trainer = TorchTrainer(
-        train_func,
-        train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": faces.tolist()},
+    # Blocks in the order of their pair ids: the same config and seed give the same batches, so the
+    # same model (Ray Data otherwise yields blocks as tasks finish, and runs diverged from epoch 1).
+    ingest = DataConfig.default_ingest_options()
+    ingest.preserve_order = True
+    return TorchTrainer(
+        loop,
+        train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": faces.tolist(), **(loop_config or {})},
         scaling_config=ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
                                      resources_per_worker={"CPU": cfg.cpus_per_worker},
                                      placement_strategy=cfg.placement_strategy),
         datasets=datasets,
         # One worker reads the whole stream: skip the split coordinator (half a core on a 2-core machine).
-        dataset_config=DataConfig(datasets_to_split=["train"] if cfg.workers > 1 else []),
+        dataset_config=DataConfig(datasets_to_split=["train"] if cfg.workers > 1 else [], execution_options=ingest),
         run_config=RunConfig(
             name=name,
             storage_path=str(storage),
+            callbacks=callbacks,
             checkpoint_config=CheckpointConfig(num_to_keep=cfg.keep_checkpoints, checkpoint_score_attribute=SCORE,
                                                checkpoint_score_order="min"),
             failure_config=FailureConfig(max_failures=cfg.max_failures),
         ),
     )
-    return trainer.fit()
+
+
+def fit(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
+        faces: np.ndarray) -> ray.train.Result:
+    """Train `spec` on the pairs of `bank_dir`; checkpoints under `storage/name` (resumed if present)."""
+    return build_trainer(spec, bank_dir, storage, name, tracker, faces).fit()
 
 
 def best_checkpoint(result: ray.train.Result) -> ray.train.Checkpoint:

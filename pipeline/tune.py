@@ -235,36 +235,6 @@ def release_placement_group(path: Path) -> bool:
     return True
 
 
-def _trial_trainer(spec, bank: Path, storage: Path, name: str, tracker, faces, callbacks):
-    """`pipeline.train.fit`'s TorchTrainer, plus `callbacks` in its RunConfig (Tune reporting)."""
-    from ray.train import CheckpointConfig, DataConfig, FailureConfig, RunConfig, ScalingConfig
-    from ray.train.torch import TorchTrainer
-
-    from pipeline.data import pair_dataset
-    from pipeline.train import EVAL_SPLITS, SCORE
-
-    cfg = spec.train
-    datasets = {"train": pair_dataset(bank, "train", spec.data, epochs=cfg.epochs)}
-    for split in EVAL_SPLITS:
-        datasets[split] = pair_dataset(bank, split, spec.data)
-    return TorchTrainer(
-        sweep_train_func,
-        train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": list(faces),
-                           "placement_group_file": str(storage / name / PLACEMENT_GROUP_FILE)},
-        scaling_config=ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
-                                     resources_per_worker={"CPU": cfg.cpus_per_worker},
-                                     placement_strategy=cfg.placement_strategy),
-        datasets=datasets,
-        dataset_config=DataConfig(datasets_to_split=["train"]),
-        run_config=RunConfig(
-            name=name, storage_path=str(storage), callbacks=callbacks,
-            checkpoint_config=CheckpointConfig(num_to_keep=cfg.keep_checkpoints, checkpoint_score_attribute=SCORE,
-                                               checkpoint_score_order="min"),
-            failure_config=FailureConfig(max_failures=cfg.max_failures),
-        ),
-    )
-
-
 def run_trial(params: dict, *, base: dict, sweep: dict, sweep_name: str, bank: str, storage: str,
               experiment: str, parent_run_id: str, faces: list, vertices: int, mlflow_uri: str) -> None:
     """The function trainable: gate, open the trial's MLflow child run, train (or report the skip)."""
@@ -276,7 +246,7 @@ def run_trial(params: dict, *, base: dict, sweep: dict, sweep_name: str, bank: s
     os.environ["MLFLOW_TRACKING_URI"] = mlflow_uri
 
     from pipeline.tracking import start_job_run
-    from pipeline.train import RunSpec
+    from pipeline.train import RunSpec, build_trainer
 
     sweep_cfg = from_dict(SweepConfig, sweep, "sweep")
     trial_id = tune.get_context().get_trial_id()
@@ -301,8 +271,9 @@ def run_trial(params: dict, *, base: dict, sweep: dict, sweep_name: str, bank: s
         tune.report({**extra, "epoch": 0, sweep_cfg.metric: math.nan})
         tracker.end("KILLED")
         return
-    trainer = _trial_trainer(spec, Path(bank), Path(storage), name, tracker, np.asarray(faces),
-                             [TrialReport(extra)])
+    trainer = build_trainer(spec, Path(bank), Path(storage), name, tracker, np.asarray(faces), loop=sweep_train_func,
+                            loop_config={"placement_group_file": str(Path(storage) / name / PLACEMENT_GROUP_FILE)},
+                            callbacks=[TrialReport(extra)])
     result = trainer.fit()  # the driver-side SweepRuns callback ends the MLflow run with the final status
     if result.error:
         raise RuntimeError(f"trial {trial_id} failed: {type(result.error).__name__}: {result.error}")

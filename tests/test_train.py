@@ -161,3 +161,30 @@ def test_bad_config_fails_with_one_line_before_starting_ray(tmp_path, repo_root)
         assert run.returncode == 2, run.stderr
         assert run.stderr.strip().count("\n") == 0 and message in run.stderr, run.stderr
         assert not (tmp_path / "x").exists()
+
+
+def test_training_reads_pairs_in_id_order(tmp_path, tiny_bank, repo_root):
+    """build_trainer's ingest preserves block order: the same config and seed give the same batches
+    (and so the same model), however Ray Data's tasks happen to finish."""
+    import json
+
+    import numpy as np
+    import ray.train
+
+    from aniformer.cli import load_config
+    from pipeline.train import RunSpec, build_trainer
+
+    def record_pair_order(config):  # defined here: cloudpickle ships it by value (workers cannot import tests)
+        ids = []
+        for batch in ray.train.get_dataset_shard("train").iter_torch_batches(batch_size=256):
+            ids += (batch["epoch"] * 100_000 + batch["index"]).tolist()
+        Path(config["record"]).write_text(json.dumps(ids))
+
+    # 2 epochs x 3,000 pairs: several blocks and assembly tasks, which finish in any order
+    spec = RunSpec.from_config(load_config(repo_root / "configs/tiny.yaml", ["train.epochs=2", "data.pairs_per_epoch=3000"]))
+    record = tmp_path / "ids.json"
+    trainer = build_trainer(spec, tiny_bank, tmp_path / "ray", "order", None, np.zeros((1, 3), np.int64),
+                            loop=record_pair_order, loop_config={"record": str(record)})
+    assert trainer.fit().error is None
+    ids = json.loads(record.read_text())
+    assert ids == [e * 100_000 + i for e in (0, 1) for i in range(3000)]
