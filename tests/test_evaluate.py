@@ -251,3 +251,37 @@ def test_evaluate_user_errors_before_any_work(tmp_path):
         evaluate_main(["--checkpoint", "x", "--out", tmp_path, "--batch-size", "0"])
     with pytest.raises(UserError, match="required"):
         evaluate_main(["--out", tmp_path])
+
+
+@pytest.mark.slow
+@pytest.mark.ray
+def test_export_then_animate_is_the_documented_flow(tiny_run, tmp_path, capsys):
+    """jobs/export_meshes.py turns a bank split into OBJ inputs that jobs/animate.py takes as they are."""
+    from aniformer.animate import driving_files, load_driving, read_glb
+    from aniformer.cli import UserError
+    from aniformer.mesh import load_mesh
+    from jobs.animate import main as animate_main
+    from jobs.export_meshes import main as export_main
+    from pipeline.data import load_bank
+
+    samples = tmp_path / "samples"
+    export_main(["--bank", str(tiny_run / "bank"), "--split", "unseen", "--out", str(samples)])
+    bank = load_bank(tiny_run / "bank")
+    split = bank.manifest["splits"]["unseen"]
+    motion, target = split["motions"][0], split["targets"][0]
+    driving, faces = load_driving(driving_files(str(samples / "driving")))
+    truth, _ = load_driving(driving_files(str(samples / "ground_truth")))
+    np.testing.assert_allclose(driving, bank.sequence(bank.manifest["motions"][motion]["driver"], motion), atol=1e-6)
+    np.testing.assert_allclose(truth, bank.sequence(target, motion), atol=1e-6)
+    np.testing.assert_array_equal(faces, bank.faces)
+    assert load_mesh(samples / "target.obj")[0].shape == (bank.num_vertices, 3)
+    with pytest.raises(UserError, match="not in split"):
+        export_main(["--bank", str(tiny_run / "bank"), "--split", "unseen", "--motion", "-1", "--out", str(tmp_path / "x")])
+    assert not (tmp_path / "x").exists()
+
+    anim = tmp_path / "anim"
+    animate_main(["--checkpoint", str(tiny_run / "best.pt"), "--target", str(samples / "target.obj"), "--driving",
+                  str(samples / "driving"), "--out", str(anim), "--no-progress", "--device", "cpu", "--preview-frames", "4"])
+    assert len(list((anim / "frames").glob("frame_*.obj"))) == len(driving)
+    assert read_glb(anim / "animation.glb")["frames"].shape == (len(driving), bank.num_vertices, 3)
+    assert "exported" in capsys.readouterr().out
