@@ -105,6 +105,28 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             os.unlink(tmp)
 
 
+class RunJobParser(ArgumentParser):
+    """The arguments of the jobs that run on Ray (train, sweep, ablate): `--config FILE`, `--out DIR`,
+    `--name`, `--bank`, `--experiment` and `key=value` overrides."""
+
+    def __init__(self, prog: str, doc: str, out_help: str, name_help: str):
+        super().__init__(prog=prog, description=doc.split("\n\n")[0])
+        self.add_argument("--config", required=True, metavar="FILE")
+        self.add_argument("--out", required=True, metavar="DIR", help=out_help)
+        self.add_argument("--name", default=None, help=f"{name_help} (default: OUT's name)")
+        self.add_argument("--bank", default=None, metavar="DIR", help="an existing mesh bank (default: OUT/bank)")
+        self.add_argument("--experiment", default="aniformer", help="MLflow experiment")
+        self.add_argument("overrides", nargs="*", metavar="key=value")
+
+    @staticmethod
+    def locations(args: argparse.Namespace) -> tuple[Path, str, Path]:
+        """(out, job name, bank) of parsed arguments; `out` is created, the name checked."""
+        out = Path(args.out).expanduser().resolve()
+        name = job_name(args.name or out.name)
+        out.mkdir(parents=True, exist_ok=True)
+        return out, name, Path(args.bank).expanduser().resolve() if args.bank else out / "bank"
+
+
 def job_name(name: str) -> str:
     """A job name (`--name`): it names directories under `--out`, so it must be one plain path
     component, never `..` or a path that leads elsewhere."""

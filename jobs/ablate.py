@@ -13,7 +13,6 @@ Without RAY_ADDRESS a local Ray instance is started.
 
 from __future__ import annotations
 
-import argparse
 import json
 import signal
 import sys
@@ -23,18 +22,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import ArgumentParser, UserError, job_name, run  # noqa: E402
-
-
-def parse_args(argv: list[str]) -> argparse.Namespace:
-    p = ArgumentParser(prog="ablate.py", description=__doc__.split("\n\n")[0])
-    p.add_argument("--config", required=True, metavar="FILE")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (runs/, ablation.md/.csv/.json)")
-    p.add_argument("--name", default=None, help="ablation name: MLflow parent run and job prefix (default: OUT's name)")
-    p.add_argument("--bank", default=None, metavar="DIR", help="an existing mesh bank (default: OUT/bank)")
-    p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
-    p.add_argument("overrides", nargs="*", metavar="key=value")
-    return p.parse_args(argv)
+from aniformer.cli import RunJobParser, UserError, run  # noqa: E402
 
 
 def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: str, parent_run_id: str,
@@ -108,17 +96,15 @@ def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: in
 
 
 def main(argv: list[str]) -> None:
-    args = parse_args(argv)
+    args = RunJobParser("ablate.py", __doc__, out_help="output directory (runs/, ablation.md/.csv/.json)",
+                        name_help="ablation name: MLflow parent run and job prefix").parse_args(argv)
     from pipeline.ablation import load_ablation_config, variant_specs
 
     base, ablation = load_ablation_config(args.config, args.overrides)
     specs = variant_specs(base, ablation)  # bad config or variant: one line before anything starts
     if len({spec.data.center for spec in specs.values()}) > 1:
         raise UserError("ablation variants must share data.center (they are scored on the same pairs)")
-    out = Path(args.out).resolve()
-    name = job_name(args.name or out.name)
-    bank = Path(args.bank).resolve() if args.bank else out / "bank"
-    out.mkdir(parents=True, exist_ok=True)
+    out, name, bank = RunJobParser.locations(args)
 
     from aniformer.cli import atomic_path
     from aniformer.evaluate import table_csv, table_markdown

@@ -14,7 +14,6 @@ only the unfinished ones run. Without RAY_ADDRESS a local Ray instance is starte
 
 from __future__ import annotations
 
-import argparse
 import signal
 import sys
 from pathlib import Path
@@ -22,22 +21,12 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import ArgumentParser, job_name, load_config, run  # noqa: E402
-
-
-def parse_args(argv: list[str]) -> argparse.Namespace:
-    p = ArgumentParser(prog="sweep.py", description=__doc__.split("\n\n")[0])
-    p.add_argument("--config", required=True, metavar="FILE")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (summary.csv, tune/, trials/)")
-    p.add_argument("--name", default=None, help="sweep name: MLflow parent run and Tune experiment (default: OUT's name)")
-    p.add_argument("--bank", default=None, metavar="DIR", help="an existing mesh bank (default: OUT/bank)")
-    p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
-    p.add_argument("overrides", nargs="*", metavar="key=value")
-    return p.parse_args(argv)
+from aniformer.cli import RunJobParser, load_config, run  # noqa: E402
 
 
 def main(argv: list[str]) -> None:
-    args = parse_args(argv)
+    args = RunJobParser("sweep.py", __doc__, out_help="output directory (summary.csv, tune/, trials/)",
+                        name_help="sweep name: MLflow parent run and Tune experiment").parse_args(argv)
     config = load_config(args.config, args.overrides)
     from pipeline.train import RunSpec
     from pipeline.tune import apply_params, split_config
@@ -46,10 +35,7 @@ def main(argv: list[str]) -> None:
     spec = RunSpec.from_config(base)  # bad config: one line before anything starts
     for window in sweep.window:  # both ends of the window range must make valid runs
         RunSpec.from_config(apply_params(base, {"window": window}))
-    out = Path(args.out).resolve()
-    name = job_name(args.name or out.name)
-    bank = Path(args.bank).resolve() if args.bank else out / "bank"
-    out.mkdir(parents=True, exist_ok=True)
+    out, name, bank = RunJobParser.locations(args)
 
     from pipeline.cluster import connect
     from pipeline.data import prepare_bank
