@@ -48,15 +48,8 @@ def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: s
         tracker = start_job_run(f"{name}-{slug(row)}", spec.to_dict(), experiment=experiment,
                                 parent_run_id=parent_run_id)
         tracker.set_tags({"ablation.variant": row})
-        status = "FAILED"
-        try:
+        with tracker.ended():
             result = train_job(spec, bank, run_dir, f"{name}-{slug(row)}", tracker, faces)
-            status = "FINISHED"
-        except (KeyboardInterrupt, SystemExit):
-            status = "KILLED"
-            raise
-        finally:
-            tracker.end(status)
         print(f"[{row}] PMD unseen {result.metrics.get('pmd_unseen', float('nan')):.3f} (x1e-4, validation)", flush=True)
     return best
 
@@ -123,9 +116,8 @@ def main(argv: list[str]) -> None:
                            experiment=args.experiment)
     parent.set_tags({"kind": "ablation"})
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    status = "FAILED"
     started = time.perf_counter()
-    try:
+    with parent.ended():
         checkpoints = _train_variants(specs, bank, out, name, args.experiment, parent.run_id, faces)
         seed, pairs = first.data.seed, ablation.pairs or first.data.eval_pairs
         print(f"evaluating {len(specs)} variants on {pairs} pairs per split ...", flush=True)
@@ -149,12 +141,6 @@ def main(argv: list[str]) -> None:
             parent.log_artifact(out / filename, "ablation")
         parent.log_metrics({f"pmd_{split}.{slug(row)}": value for row, values in table.items()
                             for split, value in values.items()}, step=0)
-        status = "FINISHED"
-    except (KeyboardInterrupt, SystemExit):
-        status = "KILLED"
-        raise
-    finally:
-        parent.end(status)
     print(markdown.split("\n\nEvery variant")[0].strip())
     print(f"ablation {name}: {len(specs)} variants in {time.perf_counter() - started:.0f} s")
     print(f"table: {out / 'ablation.md'}, {out / 'ablation.csv'}")

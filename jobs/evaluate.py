@@ -244,8 +244,7 @@ def _log_to_mlflow(job: str, args, files: Path, table, sweep, pairs, seed, split
                            "splits": splits, "compare": args.compare, "noise": args.noise or ""}, **config}
     try:
         tracker = start_job_run(job, params, experiment=args.experiment)
-        status = "FAILED"
-        try:
+        with tracker.ended():
             metrics = {f"pmd_{split}.{_metric_name(row)}": value
                        for row, values in table.items() for split, value in values.items()}
             tracker.log_metrics(metrics, step=0)
@@ -258,9 +257,6 @@ def _log_to_mlflow(job: str, args, files: Path, table, sweep, pairs, seed, split
             source = RUN_ID.fullmatch(args.checkpoint)
             if source and not Path(args.checkpoint).exists():
                 tracker.set_tags({"aniformer.source_run": source.group(1)})
-            status = "FINISHED"
-        finally:
-            tracker.end(status)
     except UserError:
         raise
     except Exception as e:  # unreachable server, bad URI ...

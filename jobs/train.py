@@ -42,15 +42,8 @@ def main(argv: list[str]) -> None:
     tracker = start_job_run(name, spec.to_dict(), experiment=args.experiment)
     # `ray job stop` and kill send SIGTERM: end the MLflow run as KILLED rather than leave it RUNNING.
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    status = "FAILED"
-    try:
+    with tracker.ended():
         result = train_job(spec, bank, out, name, tracker, faces)
-        status = "FINISHED"
-    except (KeyboardInterrupt, SystemExit):
-        status = "KILLED"
-        raise
-    finally:
-        tracker.end(status)
     metrics = result.metrics or {}
     print(f"trained {name}: epoch {metrics.get('epoch')}, PMD seen {metrics.get('pmd_seen', float('nan')):.3f}, "
           f"unseen {metrics.get('pmd_unseen', float('nan')):.3f} (x1e-4)")

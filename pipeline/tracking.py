@@ -8,10 +8,11 @@ shows the runs. The driver creates and ends runs; the rank-0 training worker log
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from mlflow.entities import Metric, Param, RunStatus, RunTag
@@ -80,6 +81,20 @@ class Tracker:
 
     def end(self, status: str) -> None:
         self.client.set_terminated(self.run_id, status)
+
+    @contextlib.contextmanager
+    def ended(self) -> Iterator[None]:
+        """End the run as the block leaves: FINISHED, KILLED on Ctrl-C or SIGTERM (SystemExit), else
+        FAILED, so a job never leaves its run RUNNING."""
+        status = "FAILED"
+        try:
+            yield
+            status = "FINISHED"
+        except (KeyboardInterrupt, SystemExit):
+            status = "KILLED"
+            raise
+        finally:
+            self.end(status)
 
 
 def experiment_id(client: MlflowClient, name: str, uri: str) -> str:
