@@ -134,20 +134,22 @@ def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_
 
 def test_interrupted_driver_resumes_when_run_again(tmp_path, tiny_bank, ray_address, repo_root):
     out = tmp_path / "resume"
-    job = start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=4")
-    wait_for_checkpoint(out, job)
+    job = start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=6")
+    # Not just a checkpoint file on disk: Ray Train must have registered it, or a rerun has nothing to
+    # restore. The run logging epoch 2 means the checkpoint of epoch 1 is registered.
+    wait_for_epoch(out, job, 2)
     job.send_signal(signal.SIGINT)
     output, _ = job.communicate(timeout=120)
     assert job.returncode != 0, output[-2000:]
     client, (run,) = job_runs(out)
     assert run.info.status == "KILLED"  # never left RUNNING
 
-    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=4"))
+    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=6"))
     client, runs = job_runs(out)
     assert len(runs) == 1 and runs[0].info.status == "FINISHED"  # the same MLflow run, continued
     resumed = logged(client, runs[0], "resumed_from_epoch")
     assert resumed and resumed[0][1] >= 1
-    assert load_checkpoint(out / "last.pt")["epoch"] == 4
+    assert load_checkpoint(out / "last.pt")["epoch"] == 6
 
 
 def test_bad_config_fails_with_one_line_before_starting_ray(tmp_path, repo_root):
