@@ -45,6 +45,20 @@ def test_shipped_ablation_config_has_the_paper_rows_and_one_budget():
     assert specs["temporal attention"].to_dict() == RunSpec.from_config(default).to_dict()
 
 
+def test_shipped_seeds_config_repeats_the_default_and_varies_only_the_seed():
+    from pipeline.ablation import load_ablation_config, variant_specs
+    from pipeline.train import RunSpec
+
+    specs = variant_specs(*load_ablation_config(ROOT / "configs/seeds.yaml"))
+    default = RunSpec.from_config(yaml.safe_load((ROOT / "configs/default.yaml").read_text())).to_dict()
+    assert specs["temporal attention s0"].to_dict() == specs["temporal attention s0 repeat"].to_dict() == default
+    for design in ("temporal attention", "paper design", "NPT"):
+        runs = [specs[f"{design} s{seed}"].to_dict() for seed in range(3)]
+        assert [r["train"]["seed"] for r in runs] == [0, 1, 2]
+        assert all({**r, "train": {**r["train"], "seed": 0}} == runs[0] for r in runs)
+    assert specs["paper design s0"].model.temporal == "embedding" and specs["NPT s0"].model_name == "npt"
+
+
 def test_bad_ablation_configs_fail_with_one_line(tmp_path):
     from pipeline.ablation import load_ablation_config, variant_specs
 
