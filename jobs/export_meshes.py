@@ -52,7 +52,8 @@ def main(argv: list[str]) -> None:
     from aniformer.animate import write_obj
     from pipeline.data import load_bank
 
-    bank = load_bank(Path(args.bank).expanduser())
+    bank_dir = Path(args.bank).expanduser().resolve()
+    bank = load_bank(bank_dir)
     splits = bank.manifest["splits"]
     if args.split not in splits or not splits[args.split]["motions"] or not splits[args.split]["targets"]:
         raise UserError(f"--split {args.split!r}: not a non-empty split of the bank "
@@ -65,6 +66,7 @@ def main(argv: list[str]) -> None:
     truth = bank.sequence(target, motion)
     rest_motion = next(m["id"] for m in bank.manifest["motions"] if m["id"] != motion)
     target_mesh = bank.sequence(target, rest_motion)[0]
+    driver_name, target_name = (bank.manifest["identities"][i]["name"] for i in (info["driver"], target))
 
     with staged_output_dir(out, args.overwrite) as tmp:
         for directory, frames in (("driving", driving), ("ground_truth", truth)):
@@ -73,13 +75,11 @@ def main(argv: list[str]) -> None:
                 write_obj(tmp / directory / f"frame_{k:04d}.obj", vertices, bank.faces)
         write_obj(tmp / "target.obj", target_mesh, bank.faces)
         (tmp / "export.json").write_text(json.dumps({
-            "bank": str(Path(args.bank).resolve()), "split": args.split, "motion": info,
-            "driver": bank.manifest["identities"][info["driver"]]["name"],
-            "target": bank.manifest["identities"][target]["name"], "target_pose_from_motion": rest_motion,
+            "bank": str(bank_dir), "split": args.split, "motion": info,
+            "driver": driver_name, "target": target_name, "target_pose_from_motion": rest_motion,
             "frames": len(driving), "vertices": bank.num_vertices}, indent=2) + "\n")
-    print(f"exported {info['name']} ({len(driving)} frames, {bank.num_vertices} vertices) by "
-          f"{bank.manifest['identities'][info['driver']]['name']}, target "
-          f"{bank.manifest['identities'][target]['name']}")
+    print(f"exported {info['name']} ({len(driving)} frames, {bank.num_vertices} vertices) by {driver_name}, "
+          f"target {target_name}")
     print(f"driving: {out / 'driving'}  target: {out / 'target.obj'}  ground truth: {out / 'ground_truth'}")
 
 
