@@ -14,11 +14,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from aniformer.animate import driving_files, load_driving  # noqa: E402
 from aniformer.mesh import center_bbox, load_mesh  # noqa: E402
-from aniformer.metrics import PMD_SCALE  # noqa: E402
+from aniformer.metrics import PMD_SCALE, pmd  # noqa: E402
 from aniformer.render import render_filmstrip  # noqa: E402
 
 
@@ -33,8 +34,8 @@ def main(samples: str, animation: str, png: str) -> None:
     motion = json.loads((samples / "export.json").read_text())["motion"]["name"]
     render_filmstrip([(label, center_bbox(v), f) for label, v, f in rows], png, frames=len(shown),
                      title=f"{motion}: driver / target / result / ground truth (frames {', '.join(map(str, shown))})")
-    pmd = ((center_bbox(result) - center_bbox(truth)) ** 2).sum(-1).mean() * PMD_SCALE
-    print(f"{png}: PMD {pmd:.2f} x1e-4 over {len(driving)} frames")
+    error = pmd(torch.from_numpy(center_bbox(result)), torch.from_numpy(center_bbox(truth))).item() * PMD_SCALE
+    print(f"{png}: PMD {error:.2f} x1e-4 over {len(driving)} frames")
 
 
 if __name__ == "__main__":
