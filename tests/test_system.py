@@ -8,7 +8,7 @@ One module-scoped cluster (the CI machine has 2 cores, so it is started once):
 - `ray start --head --block` bound to 127.0.0.1 with token authentication, and two worker nodes
   (`ray start --address=... --block`), each in its own process group and temp dir, every port
   chosen free (two Ray instances on one machine otherwise collide, e.g. on the dashboard agent's
-  52365 or the autoscaler's metrics port 44217);
+  52365 or the autoscaler's and the dashboard's metrics ports 44217 and 44227);
 - every node started with MLFLOW_TRACKING_URI in its environment, as cluster.yaml does, so jobs log
   to the server without being told (no runtime_env).
 
@@ -87,6 +87,15 @@ def group_pids(pgid: int) -> set[int]:
             if int(fields[2]) == pgid:
                 pids.add(int(entry.name))
     return pids
+
+
+def kill_group(pgid: int) -> None:
+    """SIGKILL what is left of a process group; members may exit while we go through them."""
+    for pid in group_pids(pgid):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
 
 
 def tree_pids(root: int) -> set[int]:
@@ -217,11 +226,7 @@ def _stop(procs: list[subprocess.Popen], grace: float = 10) -> None:
             p.wait(timeout=max(1, deadline - time.time()))
         except subprocess.TimeoutExpired:
             pass
-        for pid in group_pids(p.pid):
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+        kill_group(p.pid)
         if p.poll() is None:
             p.wait(timeout=30)
 
@@ -250,7 +255,7 @@ def _healthy(url: str) -> bool:
 def cluster(tmp_path_factory):
     root = tmp_path_factory.mktemp("system")
     (gcs, dashboard, client, head_agent, head_agent_grpc, head_metrics, head_runtime_env, head_nm, head_om,
-     autoscaler_metrics, mlflow_port, *worker_ports) = free_ports(11 + 2 * 6)
+     autoscaler_metrics, dashboard_metrics, mlflow_port, *worker_ports) = free_ports(12 + 2 * 6)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("RAY_", "MLFLOW_"))}
     env["PATH"] = f"{BIN}:{env['PATH']}"  # the job's `python` must be this venv's
     # Token authentication, as on the cluster: the job API runs code for whoever reaches it.
@@ -261,7 +266,7 @@ def cluster(tmp_path_factory):
     temp_dirs = [tempfile.mkdtemp(prefix="ray", dir="/tmp") for _ in range(3)]
     c = Cluster(root=root, env=env, dashboard=f"http://127.0.0.1:{dashboard}", gcs=f"127.0.0.1:{gcs}",
                 mlflow=f"http://127.0.0.1:{mlflow_port}", mlflow_port=mlflow_port, dashboard_port=dashboard,
-                ray_rpc_ports={gcs, head_agent_grpc, head_nm, head_om}, metrics_ports={head_metrics, autoscaler_metrics})
+                ray_rpc_ports={gcs, head_agent_grpc, head_nm, head_om}, metrics_ports={head_metrics, autoscaler_metrics, dashboard_metrics})
     try:
         _start(c, "mlflow", [sys.executable, "-m", "pipeline.mlflow_server", "--host", "127.0.0.1",
                              "--port", str(mlflow_port), "--store", str(root / "mlflow"),
@@ -274,7 +279,8 @@ def cluster(tmp_path_factory):
                            f"--dashboard-agent-grpc-port={head_agent_grpc}", f"--metrics-export-port={head_metrics}",
                            f"--runtime-env-agent-port={head_runtime_env}", f"--node-manager-port={head_nm}",
                            f"--object-manager-port={head_om}"],
-               AUTOSCALER_METRIC_PORT=str(autoscaler_metrics))  # fixed 44217 otherwise: one per machine
+               # fixed 44217 and 44227 otherwise: one per machine, taken by whichever Ray starts first
+               AUTOSCALER_METRIC_PORT=str(autoscaler_metrics), DASHBOARD_METRIC_PORT=str(dashboard_metrics))
         _wait("the head", lambda: c.alive_nodes() == 1, c)  # workers join a head that is fully up
         workers = {}
         for i in range(2):
@@ -527,7 +533,6 @@ def test_jobs_without_a_cluster_start_a_local_ray_on_localhost_with_token_auth(t
         try:
             proc.wait(timeout=60)
         except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-        for pid in group_pids(proc.pid):
-            os.kill(pid, signal.SIGKILL)
+            pass
+        kill_group(proc.pid)
         shutil.rmtree(env["RAY_TMPDIR"], ignore_errors=True)
