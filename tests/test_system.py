@@ -266,7 +266,8 @@ def cluster(tmp_path_factory):
     temp_dirs = [tempfile.mkdtemp(prefix="ray", dir="/tmp") for _ in range(3)]
     c = Cluster(root=root, env=env, dashboard=f"http://127.0.0.1:{dashboard}", gcs=f"127.0.0.1:{gcs}",
                 mlflow=f"http://127.0.0.1:{mlflow_port}", mlflow_port=mlflow_port, dashboard_port=dashboard,
-                ray_rpc_ports={gcs, head_agent_grpc, head_nm, head_om}, metrics_ports={head_metrics, autoscaler_metrics, dashboard_metrics})
+                ray_rpc_ports={gcs, head_agent_grpc, head_nm, head_om},
+                metrics_ports={head_metrics, autoscaler_metrics, dashboard_metrics})
     try:
         _start(c, "mlflow", [sys.executable, "-m", "pipeline.mlflow_server", "--host", "127.0.0.1",
                              "--port", str(mlflow_port), "--store", str(root / "mlflow"),
