@@ -19,7 +19,7 @@ from einops import rearrange
 from torch import nn
 
 from aniformer.mesh import center_bbox
-from aniformer.model import AniFormer, AniFormerConfig, FeatureExtractor, SPAdaINResBlock
+from aniformer.model import AniFormer, AniFormerConfig, FeatureExtractor, SPAdaINResBlock, run_block
 
 
 @dataclass(frozen=True)
@@ -53,18 +53,19 @@ class NPT(nn.Module):
         self.projections = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
         self.blocks = nn.ModuleList(SPAdaINResBlock(c) for c in config.channels)
         self.to_xyz = nn.Linear(config.channels[-1], 3)
+        self.activation_checkpointing = False  # as AniFormer's: keep the extractor's and each block's input
 
     def forward(self, driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         B, T, V1, _ = driving.shape
         V2 = target.shape[1]
         frames = rearrange(driving, "b t v c -> (b t) 1 v c")  # frame by frame: frames become samples
         identity = target.repeat_interleave(T, dim=0)
-        pose = self.extractor(frames)
+        pose = run_block(self.extractor, self.activation_checkpointing, frames)
         if V1 != V2:  # no vertex correspondence: broadcast the pooled pose code
             pose = pose.amax(dim=2, keepdim=True).expand(-1, -1, V2, -1)
         x = torch.cat([pose, identity.unsqueeze(1)], dim=-1)
         for projection, block in zip(self.projections, self.blocks):
-            x = block(projection(x), identity)
+            x = run_block(block, self.activation_checkpointing, projection(x), identity)
         return rearrange(2 * torch.tanh(self.to_xyz(x)), "(b t) 1 v c -> b t v c", b=B)
 
 

@@ -22,9 +22,9 @@ FILENAME = "checkpoint.pt"
 
 
 def unwrap(model: nn.Module) -> nn.Module:
-    """The model inside a DistributedDataParallel (or torch.compile) wrapper."""
-    model = getattr(model, "module", model)
-    return getattr(model, "_orig_mod", model)
+    """The model inside torch.compile's and DistributedDataParallel's wrappers (compile wraps DDP)."""
+    model = getattr(model, "_orig_mod", model)
+    return getattr(model, "module", model)
 
 
 def save_checkpoint(path: str | os.PathLike, *, config: dict, model: nn.Module, optimizer, scheduler,

@@ -145,14 +145,19 @@ class _Ledger:
     def bytes(self, compute_bytes: int) -> int:
         return self.compute * compute_bytes + self.fp32 * 4
 
+    def merge(self, other: _Ledger) -> None:
+        self.compute += other.compute
+        self.fp32 += other.fp32
 
-def _extractor(ledger: _Ledger, points: int, channels: tuple[int, ...]) -> None:
+
+def _extractor(ledger: _Ledger, points: int, channels: tuple[int, ...]) -> _Ledger:
     """FeatureExtractor over `points` vertices-in-frames: Linear -> InstanceNorm -> ReLU per layer."""
     ledger.add(points * 3)  # the xyz input, saved by the first Linear
     for c in channels:
         ledger.add(points * c, fp32=True)  # Linear out: saved by var_mean (its fp32 copy under autocast)
         ledger.add(points * c, fp32=True)  # x - mean, saved by the multiply with rsqrt(var)
         ledger.add(points * c)  # ReLU out (saved by ReLU and by the next Linear)
+    return ledger
 
 
 def _resblock(ledger: _Ledger, m: int, c: int, modulation: int, mixed: bool) -> None:
@@ -170,10 +175,13 @@ def _resblock(ledger: _Ledger, m: int, c: int, modulation: int, mixed: bool) -> 
 
 
 def count_activations(model_name: str, config, batch: int, vertices: tuple[int, int], precision: str = "fp32",
-                      faces: int | None = None) -> tuple[int, int]:
+                      faces: int | None = None, activation_checkpointing: bool = False) -> tuple[int, int]:
     """(saved-activation bytes, workspace bytes) of one forward + loss for `batch` windows.
 
     `vertices` = (V1 driving, V2 target); `faces` = triangles of the target (default 2*V2, a closed mesh).
+    With `activation_checkpointing` autograd keeps each encoder stage's output only (the next one's
+    input; the feature extractors' outputs go into an add or concat, which keeps nothing) and the
+    peak adds the internals of the largest checkpointed part, rerun in backward.
     """
     compute_bytes = PRECISION_BYTES[precision]
     mixed = precision != "fp32"
@@ -181,45 +189,50 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
     T = config.window
     F = faces if faces is not None else 2 * V2
     ledger = _Ledger()
+    stages: list[tuple[_Ledger, int]] = []  # checkpointable parts: (what they save, elements of theirs kept)
     ext = tuple(config.extractor_channels)
     if model_name == "npt":
         S = B * T  # frames are samples
         m1, m2 = S * V1, S * V2
-        _extractor(ledger, m1, ext)
+        stages.append((_extractor(_Ledger(), m1, ext), 0))  # output not kept: an add / concat takes it
         if V1 != V2:
             ledger.add(m1 * ext[-1], fp32=True)  # amax saves its input
         ledger.add(m2 * (ext[-1] + 3))  # [pose, identity] concatenated, saved by the first projection
         widths = tuple(config.channels)
         for c in widths:
             ledger.add(m2 * c)  # projection out (the block's input)
-            _resblock(ledger, m2, c, S * V2 * c, mixed)
+            stage = _Ledger()
+            _resblock(stage, m2, c, S * V2 * c, mixed)
+            stages.append((stage, m2 * c))
         out_frames = T
     elif model_name == "aniformer":
         cf, heads = ext[-1], config.heads
         m1, m2 = B * T * V1, B * T * V2
-        _extractor(ledger, m1, ext)
+        stages.append((_extractor(_Ledger(), m1, ext), 0))  # output not kept: an add / concat takes it
         ledger.add(m1 * cf)  # features + temporal embedding (eq. 1), saved by the first proj / to_kv
         cross = config.attention == "cross"
         if cross:
-            _extractor(ledger, B * V2, ext)
+            stages.append((_extractor(_Ledger(), B * V2, ext), 0))
             ledger.add(m2 * cf)  # the expanded target features, materialised for the first proj
         elif config.pool_driving or V1 != V2:
             ledger.add(m1 * cf, fp32=True)  # amax saves its input
             ledger.add(m2 * cf)  # the broadcast code, materialised for the first proj
         for c in config.channels:
-            ledger.add(m2 * c)  # proj out
-            ledger.add(m2 * c)  # q
-            ledger.add((m1 if cross else m2) * 2 * c)  # k | v
-            ledger.add(m2 * c)  # SDPA out
-            ledger.add(m2 * heads, fp32=True)  # SDPA log-sum-exp: linear in V, no V x V map
-            ledger.add(m2 * c, fp32=True)  # x + gamma * attention (fp32: gamma promotes it)
+            stage = _Ledger()
+            stage.add(m2 * c)  # proj out
+            stage.add(m2 * c)  # q
+            stage.add((m1 if cross else m2) * 2 * c)  # k | v
+            stage.add(m2 * c)  # SDPA out
+            stage.add(m2 * heads, fp32=True)  # SDPA log-sum-exp: linear in V, no V x V map
+            stage.add(m2 * c, fp32=True)  # x + gamma * attention (fp32: gamma promotes it)
             if config.temporal == "attention":
-                ledger.add(m2 * c)  # compute-dtype copy of the residual for to_qkv (0 in fp32: it is the residual)
-                ledger.add(m2 * 3 * c)  # q | k | v across frames
-                ledger.add(m2 * c)  # SDPA out
-                ledger.add(m2 * heads, fp32=True)
-                ledger.add(m2 * c, fp32=True)  # the gated residual
-            _resblock(ledger, m2, c, B * V2 * c, mixed)
+                stage.add(m2 * c)  # compute-dtype copy of the residual for to_qkv (0 in fp32: it is the residual)
+                stage.add(m2 * 3 * c)  # q | k | v across frames
+                stage.add(m2 * c)  # SDPA out
+                stage.add(m2 * heads, fp32=True)
+                stage.add(m2 * c, fp32=True)  # the gated residual
+            _resblock(stage, m2, c, B * V2 * c, mixed)
+            stages.append((stage, m2 * c))
         last = config.channels[-1]
         out_frames = T
         if config.head == "regression":
@@ -232,7 +245,14 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
     # losses in fp32: pred.float(), rec's difference, eq. 4's frame differences, eq. 5's edge gathers
     ledger.add(mo * 3 * 4, fp32=True)
     ledger.add(B * out_frames * F * (9 + 3), fp32=True)
-    activations = ledger.bytes(compute_bytes)
+    recompute = 0
+    for stage, output in stages:
+        if activation_checkpointing:
+            ledger.add(output)  # kept as the next stage's (or the head's) input
+            recompute = max(recompute, stage.bytes(compute_bytes))
+        else:
+            ledger.merge(stage)
+    activations = ledger.bytes(compute_bytes) + recompute
     # backward transients: the gradient of the widest activation and its fp32 companions
     c_max = max((*ext, *getattr(config, "channels", ())))
     workspace = 3 * B * T * max(V1, V2) * c_max * 4
@@ -259,12 +279,13 @@ def _config(model_name: str, config):
 def predict_step_memory(model_name: str, config, *, vertices: int | tuple[int, int], batch: int,
                         precision: str = "fp32", device: str = "cpu", workers: int = 1,
                         faces: int | None = None, prefetch_batches: int = 2,
-                        allocator_kind: str | None = None) -> MemoryEstimate:
+                        allocator_kind: str | None = None, activation_checkpointing: bool = False) -> MemoryEstimate:
     """Predicted peak memory of one training step (Adam, `batch` windows per worker) on `device`.
 
     `config` is the model's config (dataclass or dict); its `window` is T. `device` is "cpu" or
     "cuda" (picks the process overhead, and the allocator factor unless `allocator_kind` names an
-    ALLOCATOR_FACTOR key); `precision` the autocast dtype.
+    ALLOCATOR_FACTOR key); `precision` the autocast dtype; `activation_checkpointing` as the
+    model's switch of that name.
     """
     if precision not in PRECISION_BYTES:
         raise ValueError(f"precision must be one of {sorted(PRECISION_BYTES)}, got {precision!r}")
@@ -272,7 +293,8 @@ def predict_step_memory(model_name: str, config, *, vertices: int | tuple[int, i
     config = _config(model_name, config)
     V1, V2 = (vertices, vertices) if isinstance(vertices, int) else vertices
     params = parameter_count(model_name, config)
-    activations, workspace = count_activations(model_name, config, batch, (V1, V2), precision, faces)
+    activations, workspace = count_activations(model_name, config, batch, (V1, V2), precision, faces,
+                                               activation_checkpointing)
     T = config.window
     F = faces if faces is not None else 2 * V2
     inputs = (1 + prefetch_batches) * batch * (4 * (2 * T * V1 * 3 + V2 * 3) + 8 * F * 3)

@@ -20,7 +20,9 @@ extractor instead of LayerNorm(6890); and a per-frame temporal embedding `(T, C)
 per-vertex `(T, C, V)` one, so that V is free. Attention goes through
 `F.scaled_dot_product_attention`, which never materialises the V x V matrix (flash /
 memory-efficient kernels); 1x1 convolutions are `nn.Linear` over channels-last `(..., V, C)`
-tensors, which is the layout those kernels want.
+tensors, which is the layout those kernels want. `model.activation_checkpointing = True` keeps only
+the inputs of the feature extractors and encoder stages for backward and reruns them there (an
+execution switch for huge V, not part of the architecture: neither in the config nor in checkpoints).
 
 Switches beyond the paper (all in `AniFormerConfig`):
     attention="cross"       target-vertex queries attend to driving-vertex keys/values, so the
@@ -35,16 +37,22 @@ Switches beyond the paper (all in `AniFormerConfig`):
 from __future__ import annotations
 
 import dataclasses
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from einops import rearrange
 from torch import nn
+from torch.nn.attention import SDPBackend, sdpa_kernel
+from torch.utils.checkpoint import checkpoint
 
 ATTENTIONS = ("self", "cross")
 TEMPORALS = ("embedding", "attention")
 HEADS = ("constraints", "regression")
+# The fused kernels of F.scaled_dot_product_attention; "math" materialises the V x V map.
+ATTENTION_KERNELS = {"cudnn": SDPBackend.CUDNN_ATTENTION, "flash": SDPBackend.FLASH_ATTENTION,
+                     "efficient": SDPBackend.EFFICIENT_ATTENTION, "math": SDPBackend.MATH}
 
 
 @dataclass(frozen=True)
@@ -85,6 +93,22 @@ class AniFormerConfig:
         if self.head == "regression":
             return slice(self.window // 2, self.window // 2 + 1)
         return slice(None)
+
+
+def attention_kernels(names: tuple[str, ...] | list[str]):
+    """A context in which attention may use only the named kernels, the first that fits preferred
+    (torch's own order, flash before cuDNN, when `names` is empty). A GPU without a kernel named
+    (cuDNN/flash below sm_80) falls through to the next: list "efficient" last for V100s."""
+    if not names:
+        return nullcontext()
+    return sdpa_kernel([ATTENTION_KERNELS[n] for n in names], set_priority=True)
+
+
+def run_block(block: nn.Module, checkpointed: bool, *args: torch.Tensor | None) -> torch.Tensor:
+    """`block(*args)`; checkpointed: autograd keeps only the inputs and reruns the block in backward."""
+    if checkpointed and torch.is_grad_enabled():
+        return checkpoint(block, *args, use_reentrant=False)
+    return block(*args)
 
 
 def instance_norm(x: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
@@ -212,23 +236,25 @@ class AniFormer(nn.Module):
             self.to_xyz = nn.Sequential(nn.Linear(last, last), nn.ReLU(), nn.Linear(last, 3))
         else:
             self.to_xyz = nn.Linear(last, 3)
+        self.activation_checkpointing = False
 
     def forward(self, driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         B, T, V1, _ = driving.shape
         V2 = target.shape[1]
         if T != self.config.window:
             raise ValueError(f"driving window has {T} frames, the model was built for window={self.config.window}")
-        features = self.extractor(driving) + self.temporal_embedding[:, None, :]  # eq. 1
+        checkpointed = self.activation_checkpointing
+        features = run_block(self.extractor, checkpointed, driving) + self.temporal_embedding[:, None, :]  # eq. 1
         if self.config.attention == "cross":
             memory = features
-            x = self.target_extractor(target).unsqueeze(1).expand(B, T, V2, -1)
+            x = run_block(self.target_extractor, checkpointed, target).unsqueeze(1).expand(B, T, V2, -1)
         else:
             memory = None
             if self.config.pool_driving or V1 != V2:
                 features = features.amax(dim=2, keepdim=True).expand(B, T, V2, -1)
             x = features
         for stage in self.stages:
-            x = stage(x, target, memory)
+            x = run_block(stage, checkpointed, x, target, memory)
         if self.config.head == "regression":
             x = x.mean(dim=1, keepdim=True)  # average over the sequence, one output mesh
         return 2 * torch.tanh(self.to_xyz(x))

@@ -31,7 +31,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-# (label, model config, V, batch, precision): activations of tens to hundreds of MB on CPU.
+# (label, model config, V, batch, precision[, activation checkpointing]): activations of tens to
+# hundreds of MB on CPU.
 SMALL = {"channels": [64, 64, 64, 32], "extractor_channels": [16, 32, 64]}
 MEDIUM = {"channels": [128, 128, 128, 64], "extractor_channels": [32, 64, 128]}
 WIDE = {"channels": [256, 128, 128, 64], "extractor_channels": [32, 64, 256]}
@@ -49,6 +50,9 @@ GRIDS = {
         ("wide", dict(WIDE, window=2), 615, 8, "fp32"),
         ("paper", dict(PAPER, window=3), 369, 1, "fp32"),
         ("medium-cross", dict(MEDIUM, window=3, attention="cross"), 615, 4, "fp32"),
+        ("medium, checkpointed", dict(MEDIUM, window=5), 615, 4, "fp32", True),
+        ("wide, checkpointed", dict(WIDE, window=3), 1229, 2, "fp32", True),
+        ("paper, checkpointed", dict(PAPER, window=3), 369, 1, "fp32", True),
     ],
     "gpu": [
         ("paper", dict(PAPER, window=3), 1229, 2, "bf16"),
@@ -58,6 +62,8 @@ GRIDS = {
         ("paper", dict(PAPER, window=3), 6890, 2, "fp16"),
         ("paper", dict(PAPER, window=3), 6890, 2, "fp32"),
         ("paper", dict(PAPER, window=3), 12272, 2, "bf16"),
+        ("paper, checkpointed", dict(PAPER, window=3), 12272, 8, "bf16", True),
+        ("paper, checkpointed", dict(PAPER, window=8), 12272, 2, "bf16", True),
     ],
 }
 
@@ -94,6 +100,7 @@ def child(spec: dict) -> dict:
     def steps(model_config: dict, V: int, B: int, n: int) -> None:
         torch.manual_seed(0)
         model = build_model(spec.get("model_name", "aniformer"), model_config).to(device)
+        model.activation_checkpointing = spec.get("activation_checkpointing", False)
         optimizer = torch.optim.Adam(model.parameters(), lr=5e-5)
         scaler = torch.amp.GradScaler(device.type, enabled=spec["precision"] == "fp16")
         T = model.config.window
@@ -133,7 +140,8 @@ def child(spec: dict) -> dict:
 
 
 def measure(model: dict, vertices: int, batch: int, precision: str = "fp32", device: str = "cpu",
-            steps: int = 2, model_name: str = "aniformer", timeout: float = 600, mmap: bool = False) -> dict:
+            steps: int = 2, model_name: str = "aniformer", timeout: float = 600, mmap: bool = False,
+            activation_checkpointing: bool = False) -> dict:
     """Measure one config in a fresh subprocess; returns {"measured", "baseline", "seconds"} (bytes).
 
     `mmap`: run it with glibc's mmap threshold fixed (MALLOC_MMAP_THRESHOLD_=65536), so that freed
@@ -143,7 +151,7 @@ def measure(model: dict, vertices: int, batch: int, precision: str = "fp32", dev
     if mmap:
         env["MALLOC_MMAP_THRESHOLD_"] = "65536"
     spec = {"model": model, "vertices": vertices, "batch": batch, "precision": precision, "device": device,
-            "steps": steps, "model_name": model_name}
+            "steps": steps, "model_name": model_name, "activation_checkpointing": activation_checkpointing}
     out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", json.dumps(spec)],
                          capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=env)
     if out.returncode != 0:
@@ -152,12 +160,13 @@ def measure(model: dict, vertices: int, batch: int, precision: str = "fp32", dev
 
 
 def predict(model: dict, vertices: int, batch: int, precision: str, device: str, model_name: str = "aniformer",
-            mmap: bool = False):
+            mmap: bool = False, activation_checkpointing: bool = False):
     from aniformer.memory import predict_step_memory
 
     kind = "cuda" if device.startswith("cuda") else ("cpu-mmap" if mmap else "cpu")
     return predict_step_memory(model_name, model, vertices=vertices, batch=batch, precision=precision,
-                               device=device, prefetch_batches=0, allocator_kind=kind)
+                               device=device, prefetch_batches=0, allocator_kind=kind,
+                               activation_checkpointing=activation_checkpointing)
 
 
 def main(argv: list[str]) -> None:
@@ -178,9 +187,10 @@ def main(argv: list[str]) -> None:
     print(f"| config | V | T | B | precision | predicted (MiB) | measured: {kind} (MiB) | error | s/step |")
     print("|---|---|---|---|---|---|---|---|---|")
     errors, factors = [], []
-    for label, model, V, B, precision in grid:
-        estimate = predict(model, V, B, precision, args.device, mmap=args.mmap)
-        got = measure(model, V, B, precision, args.device, args.steps, mmap=args.mmap)
+    for label, model, V, B, precision, *checkpointed in grid:
+        ac = bool(checkpointed and checkpointed[0])
+        estimate = predict(model, V, B, precision, args.device, mmap=args.mmap, activation_checkpointing=ac)
+        got = measure(model, V, B, precision, args.device, args.steps, mmap=args.mmap, activation_checkpointing=ac)
         error = estimate.step / got["measured"] - 1
         errors.append(error)
         dynamic = estimate.activations + estimate.workspace + estimate.inputs

@@ -2,7 +2,12 @@
 
 The reference is the same layer plan run the way the paper's code runs it: fp32 and attention
 that materialises the V x V map (PyTorch's math SDPA kernel computes softmax(q k^T) explicitly).
-Ours: `F.scaled_dot_product_attention` with its fused kernels, bf16 autocast on GPUs with bf16.
+Ours: `F.scaled_dot_product_attention` with its fused kernels, bf16 autocast on GPUs with bf16;
+ours-compiled: the same through `torch.compile` (`--compile-mode reduce-overhead` adds CUDA graphs).
+`--activation-checkpointing` and `--attention-kernels cudnn flash efficient` apply to both. The
+last column is the relative L2 error of a B=1 forward against the fp32 math-kernel forward of the
+same initial weights (attention gates opened to 0.5, so that attention counts); the last names the
+aten attention ops a training step ran (profiler), i.e. which SDPA kernel was really selected.
 Each measurement runs in its own process so peak memory is not polluted by the previous one.
 Throughput is also given as model FLOP/s: `AniFormer.forward_flops` (the layer plan's matmuls,
 checked against torch's FLOP counter in tests/test_model.py) per forward, 3x that per training
@@ -10,7 +15,8 @@ step, as nanoGPT's `estimate_mfu` counts; MFU = that over `--peak-tflops` (the d
 for the dtype, e.g. ~989 for an H100 SXM in bf16; the design notes use ~790).
 
     python bench/model_bench.py --device cpu --vertices 1229 --window 3 --batch 1
-    python bench/model_bench.py --device cuda --vertices 6890 12272 --batch 1 16 --peak-tflops 989
+    python bench/model_bench.py --device cuda --vertices 6890 12272 --batch 1 16 --peak-tflops 989 \
+        --attention-kernels cudnn flash efficient
 Prints one Markdown row per (implementation, V, batch).
 """
 
@@ -22,50 +28,78 @@ import resource
 import subprocess
 import sys
 import time
-from contextlib import nullcontext
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from aniformer import AniFormer, AniFormerConfig  # noqa: E402
+from aniformer.model import ATTENTION_KERNELS, attention_kernels  # noqa: E402
 
-IMPLEMENTATIONS = ("ours", "dense-fp32")
+IMPLEMENTATIONS = ("ours", "ours-compiled", "dense-fp32")
 
 
-def measure(impl: str, device: str, vertices: int, window: int, batch: int, steps: int, threads: int) -> dict:
+def open_gates(model: AniFormer) -> None:
+    """gamma = 0.5 everywhere: at initialisation (gamma = 0) attention adds nothing to the output, so
+    a numerics check would not see it."""
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if name.endswith("gamma"):
+                p.fill_(0.5)
+
+
+def attention_ops(fn) -> str:
+    """The aten attention ops that `fn` runs: which SDPA kernel was really selected (also when compiled)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    prefix = "aten::_scaled_dot_product_"
+    names = sorted({e.name.removeprefix(prefix) for e in prof.events() if e.name.startswith(prefix)})
+    return ", ".join(names) or "none (inlined)"
+
+
+def measure(impl: str, device: str, vertices: int, window: int, batch: int, steps: int, threads: int,
+            compile_mode: str = "default", activation_checkpointing: bool = False,
+            kernels: tuple[str, ...] = ()) -> dict:
     torch.manual_seed(0)
     if device == "cpu":
         torch.set_num_threads(threads)
     model = AniFormer(AniFormerConfig(window=window)).to(device)
+    open_gates(model)
     optimizer = torch.optim.Adam(model.parameters(), lr=5e-5)
-    driving = torch.randn(batch, window, vertices, 3, device=device)
-    target = torch.randn(batch, vertices, 3, device=device)
-    use_bf16 = impl == "ours" and device == "cuda" and torch.cuda.is_bf16_supported()
+    driving = torch.randn(batch, window, vertices, 3, device=device) * 0.3
+    target = torch.randn(batch, vertices, 3, device=device) * 0.3
+    ours = impl != "dense-fp32"
+    use_bf16 = ours and device == "cuda" and torch.cuda.is_bf16_supported()
     autocast = torch.autocast("cuda", torch.bfloat16, enabled=use_bf16)
-    if impl == "dense-fp32":
-        from torch.nn.attention import SDPBackend, sdpa_kernel
-        kernel = lambda: sdpa_kernel(SDPBackend.MATH)  # noqa: E731
+    initial = {k: v.clone() for k, v in model.state_dict().items()}  # for the numerics check after the timing
+    run = model
+    if ours:
+        model.activation_checkpointing = activation_checkpointing
+        if impl == "ours-compiled":
+            run = torch.compile(model, mode=compile_mode)
     else:
-        kernel = nullcontext
+        kernels = ("math",)  # the V x V map in fp32, as the paper's code
 
     def sync():
         if device == "cuda":
             torch.cuda.synchronize()
 
     def forward():
-        with torch.no_grad(), autocast, kernel():
-            model(driving[:1], target[:1])
+        with torch.no_grad(), autocast, attention_kernels(kernels):
+            return run(driving[:1], target[:1])
 
     def train_step():
-        with autocast, kernel():
-            loss = (model(driving, target) - driving).square().mean()
+        with autocast, attention_kernels(kernels):
+            loss = (run(driving, target) - driving).square().mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
 
     def timed(fn) -> float:
-        fn()  # warm-up
+        for _ in range(3 if impl == "ours-compiled" else 1):  # warm-up: compilation, CUDA graph recording
+            fn()
         sync()
         start = time.perf_counter()
         for _ in range(steps):
@@ -83,10 +117,16 @@ def measure(impl: str, device: str, vertices: int, window: int, batch: int, step
     else:  # the process high-water mark above what model + inputs already held
         peak_gib = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before) / 2**20
     flops = model.forward_flops(vertices)
+    # Numerics: this implementation's forward against the fp32 math-kernel forward, same initial weights.
+    model.load_state_dict(initial)
+    with torch.no_grad(), attention_kernels(["math"]):
+        reference = model(driving[:1], target[:1]).float()
+    error = ((forward().float() - reference).norm() / reference.norm()).item()
+    ops = attention_ops(train_step)
     return dict(impl=impl, device=device, vertices=vertices, window=window, batch=batch,
                 forward_ms=forward_s * 1e3, step_ms_per_sample=step_s * 1e3 / batch, peak_gib=peak_gib,
-                dtype="bf16" if use_bf16 else "fp32", forward_tflops=flops / forward_s / 1e12,
-                train_tflops=3 * flops * batch / step_s / 1e12)
+                dtype="bf16" if use_bf16 else "fp32", relative_error=error, forward_tflops=flops / forward_s / 1e12,
+                train_tflops=3 * flops * batch / step_s / 1e12, attention=ops)
 
 
 def main() -> None:
@@ -99,31 +139,42 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--impl", choices=IMPLEMENTATIONS, nargs="+", default=list(IMPLEMENTATIONS))
     parser.add_argument("--peak-tflops", type=float, default=None, help="dense peak of the device, for MFU")
+    parser.add_argument("--compile-mode", default="default", help="torch.compile mode of ours-compiled")
+    parser.add_argument("--activation-checkpointing", action="store_true", help="ours*: rerun each stage in backward")
+    parser.add_argument("--attention-kernels", nargs="*", default=[], choices=sorted(ATTENTION_KERNELS),
+                        help="ours*: SDPA kernels allowed, by preference (default: torch's choice)")
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # child process: one measurement
     args = parser.parse_args()
     if args.one:
         print(json.dumps(measure(args.impl[0], args.device, args.vertices[0], args.window, args.batch[0],
-                                 args.steps, args.threads)))
+                                 args.steps, args.threads, args.compile_mode, args.activation_checkpointing,
+                                 tuple(args.attention_kernels))))
         return
+    options = ["--compile-mode", args.compile_mode, "--attention-kernels", *args.attention_kernels]
+    if args.activation_checkpointing:
+        options.append("--activation-checkpointing")
     print("| impl | device | dtype | V | T | batch | forward B=1 (ms) | train step / sample (ms) | peak (GiB) "
-          "| forward TFLOP/s | train TFLOP/s | train MFU |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| forward TFLOP/s | train TFLOP/s | train MFU | error vs fp32 | attention op (train step) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for v in args.vertices:
         for batch in args.batch:
             for impl in args.impl:
                 cmd = [sys.executable, __file__, "--one", "--impl", impl, "--device", args.device,
                        "--vertices", str(v), "--batch", str(batch), "--window", str(args.window),
-                       "--steps", str(args.steps), "--threads", str(args.threads)]
+                       "--steps", str(args.steps), "--threads", str(args.threads), *options]
                 run = subprocess.run(cmd, capture_output=True, text=True)
                 if run.returncode != 0:
                     last = (run.stderr.strip().splitlines() or ["?"])[-1]
-                    print(f"| {impl} | {args.device} | | {v} | {args.window} | {batch} | failed: {last[:80]} | | | | | |")
+                    print(f"| {impl} | {args.device} | | {v} | {args.window} | {batch} | failed: {last[:80]} "
+                          "| | | | | | | |")
                     continue
                 r = json.loads(run.stdout.strip().splitlines()[-1])
                 mfu = f"{r['train_tflops'] / args.peak_tflops:.1%}" if args.peak_tflops else ""
                 print(f"| {r['impl']} | {r['device']} | {r['dtype']} | {v} | {r['window']} | {batch} | "
                       f"{r['forward_ms']:.1f} | {r['step_ms_per_sample']:.1f} | {r['peak_gib']:.2f} | "
-                      f"{r['forward_tflops']:.3g} | {r['train_tflops']:.3g} | {mfu} |", flush=True)
+                      f"{r['forward_tflops']:.3g} | {r['train_tflops']:.3g} | {mfu} | {r['relative_error']:.1e} | "
+                      f"{r['attention']} |",
+                      flush=True)
 
 
 if __name__ == "__main__":

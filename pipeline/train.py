@@ -31,11 +31,13 @@ from aniformer.checkpoint import FILENAME, load_checkpoint, save_checkpoint, unw
 from aniformer.cli import UserError, atomic_path, from_dict
 from aniformer.losses import LossConfig, loss_terms
 from aniformer.metrics import PMD_SCALE, pmd
+from aniformer.model import ATTENTION_KERNELS, attention_kernels
 from pipeline.data import DataConfig as PairDataConfig
 from pipeline.data import data_config, pair_dataset
 from pipeline.tracking import Tracker
 
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
+COMPILE_MODES = ("none", "default", "reduce-overhead", "max-autotune")  # torch.compile's modes; none = eager
 EVAL_SPLITS = ("seen", "unseen")
 SCORE = "pmd_unseen"
 
@@ -56,12 +58,16 @@ class TrainConfig:
     use_gpu: bool = False
     placement_strategy: str = "PACK"  # SPREAD puts the workers on different nodes
     precision: str = "auto"  # auto: bf16 on GPUs that have it, fp16 + GradScaler on older (V100), fp32 on CPU
+    compile: str = "none"  # torch.compile mode for the training forward/backward (reduce-overhead: CUDA graphs)
+    activation_checkpointing: bool = False  # keep each stage's input only, rerun it in backward (huge V)
+    attention_kernels: tuple[str, ...] = ()  # SDPA kernels allowed, by preference (e.g. cudnn, flash, efficient)
     max_failures: int = 2
     keep_checkpoints: int = 2
     render_every: int = 5
 
     def __post_init__(self):
         object.__setattr__(self, "milestones", tuple(self.milestones))
+        object.__setattr__(self, "attention_kernels", tuple(self.attention_kernels))
         for name in ("epochs", "batch_size", "grad_accumulation", "workers", "keep_checkpoints", "render_every"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -72,6 +78,11 @@ class TrainConfig:
                              f"got {self.placement_strategy!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if self.compile not in COMPILE_MODES:
+            raise ValueError(f"compile must be one of {COMPILE_MODES}, got {self.compile!r}")
+        unknown = sorted(set(self.attention_kernels) - set(ATTENTION_KERNELS))
+        if unknown:
+            raise ValueError(f"attention_kernels: unknown {unknown}; choose from {sorted(ATTENTION_KERNELS)}")
 
 
 @dataclass(frozen=True)
@@ -102,7 +113,8 @@ class RunSpec:
 
     def to_dict(self) -> dict:
         return {"data": self.data.to_dict(), "model": {"name": self.model_name, **self.model.to_dict()},
-                "loss": asdict(self.loss), "train": {**asdict(self.train), "milestones": list(self.train.milestones)}}
+                "loss": asdict(self.loss), "train": {**asdict(self.train), "milestones": list(self.train.milestones),
+                                                     "attention_kernels": list(self.train.attention_kernels)}}
 
 
 def resolve_precision(requested: str, device: torch.device) -> str:
@@ -161,6 +173,7 @@ def train_func(loop_config: dict) -> None:
 
     torch.manual_seed(cfg.seed)  # same initial weights on every rank (DDP also broadcasts them)
     model = build_model(spec.model_name, spec.model.to_dict())
+    model.activation_checkpointing = cfg.activation_checkpointing
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, list(cfg.milestones), cfg.lr_decay)
     start_epoch, step = 0, 0
@@ -174,6 +187,8 @@ def train_func(loop_config: dict) -> None:
         start_epoch, step = state["epoch"], state["step"]
         torch.set_rng_state(state["rng"])
     model = ray.train.torch.prepare_model(model)
+    if cfg.compile != "none":  # compiled around DDP, so that DDP's buckets split the graph (DDPOptimizer)
+        model = torch.compile(model, mode=cfg.compile)
     device = ray.train.torch.get_device()
     precision = resolve_precision(cfg.precision, device)
     dtype = {"bf16": torch.bfloat16, "fp16": torch.float16}.get(precision)
@@ -201,7 +216,7 @@ def train_func(loop_config: dict) -> None:
             update = (i + 1) % cfg.grad_accumulation == 0 or i + 1 == steps_per_epoch
             # DDP all-reduces gradients on every backward unless told not to: only on update steps.
             with nullcontext() if update or world == 1 else model.no_sync():
-                with autocast:
+                with autocast, attention_kernels(cfg.attention_kernels):
                     pred = model(driving, target)
                 terms = loss_terms(pred.float(), batch["ground_truth"][:, frames], driving[:, frames], target,
                                    batch["target_faces"], loss_cfg)
@@ -230,7 +245,9 @@ def train_func(loop_config: dict) -> None:
                 example = None
                 for split in EVAL_SPLITS:
                     shard = ray.train.get_dataset_shard(split).iter_torch_batches(batch_size=16, device=device)
-                    metrics[f"pmd_{split}"], first = evaluate_split(unwrap(model), shard, frames, device, autocast)
+                    with attention_kernels(cfg.attention_kernels):  # eager whatever `compile` says: other shapes
+                        metrics[f"pmd_{split}"], first = evaluate_split(unwrap(model), shard, frames, device,
+                                                                        autocast)
                     example = example if split == "seen" and example else first
                 save_checkpoint(Path(directory) / FILENAME, config=spec.to_dict(), model=model,
                                 optimizer=optimizer, scheduler=scheduler, epoch=epoch + 1, step=step)

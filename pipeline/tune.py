@@ -177,7 +177,8 @@ def gate(spec, vertices: int, faces: int | None, sweep: SweepConfig):
     precision = cfg.precision if cfg.precision != "auto" else ("bf16" if cfg.use_gpu else "fp32")
     plan = plan_batch(spec.model_name, spec.model, vertices=vertices, batch=cfg.batch_size,
                       grad_accumulation=cfg.grad_accumulation, limit_gb=sweep.memory_limit_gb,
-                      precision=precision, device=device, workers=cfg.workers, faces=faces)
+                      precision=precision, device=device, workers=cfg.workers, faces=faces,
+                      activation_checkpointing=cfg.activation_checkpointing)
     if plan.status == "adjusted_memory" and plan.grad_accumulation > sweep.max_grad_accumulation:
         plan = dataclasses.replace(plan, status="skipped_memory")
     return plan

@@ -79,6 +79,7 @@ def test_estimate_grows_with_batch_window_vertices_and_has_no_vv_term():
     assert step(window=6) == pytest.approx(2 * step(window=3), rel=0.05)  # the (B, 1, V, C) modulations do not grow
     assert step(vertices=4000) == pytest.approx(4 * step(vertices=1000), rel=0.01)  # linear in V: no V x V map
     assert step(precision="bf16") < step()
+    assert step(activation_checkpointing=True) < 0.7 * step()  # two stages: the larger one is rerun
     paper = predict_step_memory("aniformer", {"window": 3}, vertices=6890, batch=16, precision="bf16", device="cuda")
     assert 20 < paper.total_gb < 80  # design.md measured 28-54 GiB for this step on an H100
 
@@ -100,20 +101,22 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("model,V,B", [
-    ({"channels": [64, 64, 64, 32], "extractor_channels": [16, 32, 64], "window": 3}, 369, 4),
-    ({"channels": [64, 64, 64, 32], "extractor_channels": [16, 32, 64], "window": 8}, 369, 2),
-    ({"channels": [64, 64, 64, 32], "extractor_channels": [16, 32, 64], "window": 2}, 1229, 2),
-    ({"channels": [128, 128, 128, 64], "extractor_channels": [32, 64, 128], "window": 5}, 615, 2),
+@pytest.mark.parametrize("model,V,B,checkpointed", [
+    ({"channels": [64, 64, 64, 32], "extractor_channels": [16, 32, 64], "window": 3}, 369, 4, False),
+    ({"channels": [64, 64, 64, 32], "extractor_channels": [16, 32, 64], "window": 8}, 369, 2, False),
+    ({"channels": [64, 64, 64, 32], "extractor_channels": [16, 32, 64], "window": 2}, 1229, 2, False),
+    ({"channels": [128, 128, 128, 64], "extractor_channels": [32, 64, 128], "window": 5}, 615, 2, False),
+    ({"channels": [128, 128, 128, 64], "extractor_channels": [32, 64, 128], "window": 5}, 615, 4, True),
 ])
-def test_prediction_within_25_percent_of_measured_peak_rss(model, V, B):
+def test_prediction_within_25_percent_of_measured_peak_rss(model, V, B, checkpointed):
     """Peak RSS of real training steps in a fresh process (minus its RSS before the model is built,
     after a warm-up), with glibc's mmap threshold fixed so that RSS follows the live tensors: the
-    step's own memory, not the allocator's history (default malloc: see docs/benchmarks.md)."""
+    step's own memory, not the allocator's history (default malloc: see docs/benchmarks.md).
+    With activation checkpointing too: kept stage outputs + the largest part rerun in backward."""
     from memory_calibration import measure, predict
 
-    estimate = predict(model, V, B, "fp32", "cpu", mmap=True)
-    got = measure(model, V, B, "fp32", "cpu", steps=2, mmap=True)
+    estimate = predict(model, V, B, "fp32", "cpu", mmap=True, activation_checkpointing=checkpointed)
+    got = measure(model, V, B, "fp32", "cpu", steps=2, mmap=True, activation_checkpointing=checkpointed)
     measured = got["measured"]
     assert measured > 50 * 2**20, "too small to measure above the noise"
     assert estimate.step == pytest.approx(measured, rel=0.25), (estimate.step / 2**20, got)

@@ -184,3 +184,100 @@ def test_forward_flops_match_torch_flop_counter(switch, v1, v2):
     with FlopCounterMode(display=False) as counter, sdpa_kernel([SDPBackend.MATH]), torch.no_grad():
         model(torch.randn(2, 3, v1, 3), torch.randn(2, v2, 3))
     assert counter.get_total_flops() == 2 * model.forward_flops(v1, v2)
+
+
+def _gradients(model, driving, target, run=None):
+    """Output and parameter gradients of `run` (default: `model`; or e.g. its compiled wrapper)."""
+    model.zero_grad(set_to_none=True)
+    out = (model if run is None else run)(driving, target)
+    out.square().mean().backward()
+    return out.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
+
+
+def _saved_bytes(model, driving, target) -> int:
+    parameters = {p.untyped_storage().data_ptr() for p in model.parameters()}
+    seen = {}
+
+    def pack(x):
+        if x.untyped_storage().data_ptr() not in parameters:
+            seen[x.untyped_storage().data_ptr()] = x.untyped_storage().nbytes()
+        return x
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda x: x):
+        model(driving, target)
+    return sum(seen.values())
+
+
+@pytest.mark.parametrize("name,config", [
+    ("aniformer", dict(TINY)),
+    ("aniformer", dict(TINY, attention="cross", temporal="attention")),
+    ("npt", dict(channels=(35, 16), extractor_channels=(8, 16, 32))),
+], ids=["paper", "cross-temporal", "npt"])
+def test_activation_checkpointing_keeps_gradients_and_saves_less(name, config):
+    """The execution switch of train.activation_checkpointing: same outputs and gradients, a fraction
+    of the saved activations; inference (no grad) takes the plain path."""
+    torch.manual_seed(0)
+    model = build_model(name, config)
+    with torch.no_grad():
+        for n, p in model.named_parameters():
+            if n.endswith("gamma"):
+                p.fill_(0.5)  # open the attention gates, so that their gradients are not trivially zero
+    driving, target = torch.randn(2, 3, 50, 3), torch.randn(2, 50, 3)
+    plain_out, plain_grads = _gradients(model, driving, target)
+    plain_saved = _saved_bytes(model, driving, target)
+    model.activation_checkpointing = True
+    out, grads = _gradients(model, driving, target)
+    torch.testing.assert_close(out, plain_out, rtol=0, atol=0)
+    for n, g in grads.items():
+        torch.testing.assert_close(g, plain_grads[n], rtol=1e-5, atol=1e-7, msg=n)
+    assert _saved_bytes(model, driving, target) < 0.6 * plain_saved
+    with torch.no_grad():
+        torch.testing.assert_close(model(driving, target), plain_out, rtol=0, atol=0)
+
+
+def test_attention_kernels_restricts_and_orders_the_sdpa_kernels():
+    """train.attention_kernels / bench --attention-kernels: only the named kernels may run (CPU has
+    math and flash; the CUDA-only ones must fail here, which shows that the restriction holds)."""
+    from aniformer.model import attention_kernels
+
+    torch.manual_seed(0)
+    model = AniFormer(AniFormerConfig(**TINY))
+    driving, target = torch.randn(1, 3, 30, 3), torch.randn(1, 30, 3)
+    default = model(driving, target)
+    for names in (["flash"], ["math"], ["cudnn", "flash", "math"], []):
+        with attention_kernels(names):
+            torch.testing.assert_close(model(driving, target), default, atol=1e-6, rtol=1e-5)
+    for names in (["efficient"], ["cudnn"]):
+        with attention_kernels(names), pytest.raises(RuntimeError, match="No viable backend"):
+            model(driving, target)
+
+
+@pytest.mark.slow
+def test_compiled_model_matches_eager(repo_root):
+    """train.compile's path (torch.compile, inductor's C++ backend on CPU) with activation checkpointing:
+    the compiled forward and gradients equal the eager ones. Model and batch are configs/tiny.yaml's
+    (369 vertices), so that the compiled training job of tests/test_train.py finds these kernels in
+    inductor's on-disk cache instead of compiling them again."""
+    from aniformer.cli import load_config
+
+    config = load_config(repo_root / "configs/tiny.yaml")
+    torch.manual_seed(0)
+    model = build_model(config["model"]["name"], {k: v for k, v in config["model"].items() if k != "name"})
+    with torch.no_grad():
+        for n, p in model.named_parameters():
+            if n.endswith("gamma"):
+                p.fill_(0.5)
+    B, T = config["train"]["batch_size"], config["data"]["window"]
+    driving, target = torch.randn(B, T, 369, 3) * 0.3, torch.randn(B, 369, 3) * 0.3
+    model.activation_checkpointing = True
+    eager_out, eager_grads = _gradients(model, driving, target)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the job's worker (0.5 CPU): inductor's cache key includes the thread count
+    try:
+        out, grads = _gradients(model, driving, target, run=torch.compile(model))
+    finally:
+        torch.set_num_threads(threads)
+    torch.testing.assert_close(out, eager_out, rtol=1e-4, atol=1e-5)
+    scale = max(g.abs().max().item() for g in eager_grads.values())  # biases before a norm have ~0 gradients
+    for n, g in grads.items():
+        torch.testing.assert_close(g, eager_grads[n], rtol=1e-3, atol=1e-5 * scale, msg=n)

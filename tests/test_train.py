@@ -6,6 +6,7 @@ Every test runs the job as a subprocess with RAY_ADDRESS set to the session clus
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -156,13 +157,33 @@ def test_bad_config_fails_with_one_line_before_starting_ray(tmp_path, repo_root)
     for override, message in [("train.epochs=0", "epochs must be >= 1"),
                               ("model.attention=both", "attention must be one of"),
                               ("model.name=limp", "unknown name"),
-                              ("train.wings=3", "unknown key(s) in [train]")]:
+                              ("train.wings=3", "unknown key(s) in [train]"),
+                              ("train.compile=fast", "compile must be one of"),
+                              ("train.attention_kernels=[flash,turbo]", "attention_kernels: unknown ['turbo']")]:
         run = subprocess.run([sys.executable, str(repo_root / "jobs/train.py"), "--config",
                               str(repo_root / "configs/tiny.yaml"), "--out", str(tmp_path / "x"), override],
                              capture_output=True, text=True, timeout=120, env={**os.environ, "RAY_ADDRESS": ""})
         assert run.returncode == 2, run.stderr
         assert run.stderr.strip().count("\n") == 0 and message in run.stderr, run.stderr
         assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.slow
+def test_compiled_checkpointed_training_job(tmp_path, tiny_bank, ray_address, repo_root):
+    """The GPU execution options through a real job, on CPU: torch.compile (inductor's C++ backend)
+    around the model, activation checkpointing and an SDPA kernel preference. They are recorded in
+    the run, and the checkpoint holds the plain model's weights."""
+    out = tmp_path / "compiled"
+    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=1", "train.compile=default",
+                     "train.activation_checkpointing=true", "train.attention_kernels=[flash,math]"))
+    client, runs = job_runs(out)
+    params = runs[0].data.params
+    assert params["train.compile"] == "default" and params["train.activation_checkpointing"] == "True"
+    assert "flash" in params["train.attention_kernels"]
+    [(_, loss)] = logged(client, runs[0], "loss")
+    assert math.isfinite(loss)
+    model, _ = model_from_checkpoint(out / "best.pt")
+    assert not any("_orig_mod" in key for key in load_checkpoint(out / "best.pt")["model"])
 
 
 def test_training_reads_pairs_in_id_order(tmp_path, tiny_bank, repo_root):
