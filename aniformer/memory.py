@@ -180,8 +180,8 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
 
     `vertices` = (V1 driving, V2 target); `faces` = triangles of the target (default 2*V2, a closed mesh).
     With `activation_checkpointing` autograd keeps each encoder stage's output only (the next one's
-    input; the feature extractors' outputs go into an add or concat, which keeps nothing) and the
-    peak adds the internals of the largest checkpointed part, rerun in backward.
+    input; the feature extractors' outputs go into an add or concat, which keeps nothing); the peak
+    is that of the largest part rerun in backward, with the outputs kept for the parts before it.
     """
     compute_bytes = PRECISION_BYTES[precision]
     mixed = precision != "fp32"
@@ -245,14 +245,19 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
     # losses in fp32: pred.float(), rec's difference, eq. 4's frame differences, eq. 5's edge gathers
     ledger.add(mo * 3 * 4, fp32=True)
     ledger.add(B * out_frames * F * (9 + 3), fp32=True)
-    recompute = 0
-    for stage, output in stages:
-        if activation_checkpointing:
-            ledger.add(output)  # kept as the next stage's (or the head's) input
-            recompute = max(recompute, stage.bytes(compute_bytes))
-        else:
-            ledger.merge(stage)
-    activations = ledger.bytes(compute_bytes) + recompute
+    parts = 0
+    if activation_checkpointing:
+        # Backward reruns the parts last to first; while part k reruns, the outputs kept for the parts
+        # before it are alive, those of the parts after it are freed already.
+        kept = 0
+        for part, output in stages:
+            parts = max(parts, kept + part.bytes(compute_bytes))
+            kept += output * compute_bytes
+        parts = max(parts, kept)  # the end of the forward pass
+    else:
+        for part, _ in stages:
+            ledger.merge(part)
+    activations = ledger.bytes(compute_bytes) + parts
     # backward transients: the gradient of the widest activation and its fp32 companions
     c_max = max((*ext, *getattr(config, "channels", ())))
     workspace = 3 * B * T * max(V1, V2) * c_max * 4

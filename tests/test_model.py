@@ -281,3 +281,17 @@ def test_compiled_model_matches_eager(repo_root):
     scale = max(g.abs().max().item() for g in eager_grads.values())  # biases before a norm have ~0 gradients
     for n, g in grads.items():
         torch.testing.assert_close(g, eager_grads[n], rtol=1e-3, atol=1e-5 * scale, msg=n)
+
+
+def test_model_bench_reports_the_kernel_really_run_and_the_error(repo_root):
+    """bench/model_bench.py's columns that the GPU rows rely on: the attention op a training step ran
+    (fused for ours, the V x V math kernel for the reference) and the error against fp32."""
+    sys.path.insert(0, str(repo_root / "bench"))
+    from model_bench import measure
+
+    ours = measure("ours", "cpu", vertices=48, window=3, batch=2, steps=1, threads=1, activation_checkpointing=True)
+    assert "flash_attention_for_cpu" in ours["attention"] and "math" not in ours["attention"]
+    assert 0 < ours["relative_error"] < 1e-5  # the same fp32 maths through another kernel
+    reference = measure("dense-fp32", "cpu", vertices=48, window=3, batch=2, steps=1, threads=1)
+    assert reference["attention"] == "attention_math" and reference["relative_error"] == 0
+    assert ours["forward_tflops"] > 0 and ours["step_ms_per_sample"] > 0
