@@ -160,7 +160,13 @@ def _extractor(ledger: _Ledger, points: int, channels: tuple[int, ...]) -> _Ledg
     return ledger
 
 
-def _resblock(ledger: _Ledger, m: int, c: int, modulation: int, mixed: bool) -> None:
+def _kept(elements: int, fp32: bool = False) -> _Ledger:
+    ledger = _Ledger()
+    ledger.add(elements, fp32)
+    return ledger
+
+
+def _resblock(ledger: _Ledger, m: int, c: int, modulation: int, mixed: bool) -> _Ledger:
     """SPAdaINResBlock on `m` vertices-in-frames of width c; `modulation` = elements of one (B, 1, V, C) scale."""
     for path in range(3):  # norm1 -> fc1, norm2 -> fc2, norm_skip -> fc_skip
         second = path == 1  # its input is fc1's ReLU output (compute dtype): norm copies it to fp32
@@ -172,6 +178,7 @@ def _resblock(ledger: _Ledger, m: int, c: int, modulation: int, mixed: bool) -> 
         ledger.add(m * c)  # modulated (+ shift), saved by the fc (as its compute-dtype copy)
         ledger.add(m * c)  # ReLU out
     ledger.add(m * c)  # out + skip: the stage's output, saved by the next Linear
+    return ledger
 
 
 def count_activations(model_name: str, config, batch: int, vertices: tuple[int, int], precision: str = "fp32",
@@ -179,9 +186,10 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
     """(saved-activation bytes, workspace bytes) of one forward + loss for `batch` windows.
 
     `vertices` = (V1 driving, V2 target); `faces` = triangles of the target (default 2*V2, a closed mesh).
-    With `activation_checkpointing` autograd keeps each encoder stage's output only (the next one's
-    input; the feature extractors' outputs go into an add or concat, which keeps nothing); the peak
-    is that of the largest part rerun in backward, with the outputs kept for the parts before it.
+    With `activation_checkpointing` autograd keeps the outputs of the checkpointed parts only (each
+    stage's attention and block, NPT's blocks; the feature extractors' outputs go into an add or
+    concat, which keeps nothing); the peak is that of the largest part rerun in backward, with the
+    outputs kept for the parts before it.
     """
     compute_bytes = PRECISION_BYTES[precision]
     mixed = precision != "fp32"
@@ -189,50 +197,48 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
     T = config.window
     F = faces if faces is not None else 2 * V2
     ledger = _Ledger()
-    stages: list[tuple[_Ledger, int]] = []  # checkpointable parts: (what they save, elements of theirs kept)
+    stages: list[tuple[_Ledger, _Ledger]] = []  # checkpointed parts: (what they save, what is kept of them)
     ext = tuple(config.extractor_channels)
     if model_name == "npt":
         S = B * T  # frames are samples
         m1, m2 = S * V1, S * V2
-        stages.append((_extractor(_Ledger(), m1, ext), 0))  # output not kept: an add / concat takes it
+        stages.append((_extractor(_Ledger(), m1, ext), _Ledger()))  # output not kept: an add / concat takes it
         if V1 != V2:
             ledger.add(m1 * ext[-1], fp32=True)  # amax saves its input
         ledger.add(m2 * (ext[-1] + 3))  # [pose, identity] concatenated, saved by the first projection
         widths = tuple(config.channels)
         for c in widths:
             ledger.add(m2 * c)  # projection out (the block's input)
-            stage = _Ledger()
-            _resblock(stage, m2, c, S * V2 * c, mixed)
-            stages.append((stage, m2 * c))
+            stages.append((_resblock(_Ledger(), m2, c, S * V2 * c, mixed), _kept(m2 * c)))
         out_frames = T
     elif model_name == "aniformer":
         cf, heads = ext[-1], config.heads
         m1, m2 = B * T * V1, B * T * V2
-        stages.append((_extractor(_Ledger(), m1, ext), 0))  # output not kept: an add / concat takes it
+        stages.append((_extractor(_Ledger(), m1, ext), _Ledger()))  # output not kept: an add / concat takes it
         ledger.add(m1 * cf)  # features + temporal embedding (eq. 1), saved by the first proj / to_kv
         cross = config.attention == "cross"
         if cross:
-            stages.append((_extractor(_Ledger(), B * V2, ext), 0))
+            stages.append((_extractor(_Ledger(), B * V2, ext), _Ledger()))
             ledger.add(m2 * cf)  # the expanded target features, materialised for the first proj
         elif config.pool_driving or V1 != V2:
             ledger.add(m1 * cf, fp32=True)  # amax saves its input
             ledger.add(m2 * cf)  # the broadcast code, materialised for the first proj
         for c in config.channels:
-            stage = _Ledger()
-            stage.add(m2 * c)  # proj out
-            stage.add(m2 * c)  # q
-            stage.add((m1 if cross else m2) * 2 * c)  # k | v
-            stage.add(m2 * c)  # SDPA out
-            stage.add(m2 * heads, fp32=True)  # SDPA log-sum-exp: linear in V, no V x V map
-            stage.add(m2 * c, fp32=True)  # x + gamma * attention (fp32: gamma promotes it)
+            mix = _Ledger()  # EncoderStage.mix: width change and attention
+            mix.add(m2 * c)  # proj out
+            mix.add(m2 * c)  # q
+            mix.add((m1 if cross else m2) * 2 * c)  # k | v
+            mix.add(m2 * c)  # SDPA out
+            mix.add(m2 * heads, fp32=True)  # SDPA log-sum-exp: linear in V, no V x V map
+            mix.add(m2 * c, fp32=True)  # x + gamma * attention (fp32: gamma promotes it)
             if config.temporal == "attention":
-                stage.add(m2 * c)  # compute-dtype copy of the residual for to_qkv (0 in fp32: it is the residual)
-                stage.add(m2 * 3 * c)  # q | k | v across frames
-                stage.add(m2 * c)  # SDPA out
-                stage.add(m2 * heads, fp32=True)
-                stage.add(m2 * c, fp32=True)  # the gated residual
-            _resblock(stage, m2, c, B * V2 * c, mixed)
-            stages.append((stage, m2 * c))
+                mix.add(m2 * c)  # compute-dtype copy of the residual for to_qkv (0 in fp32: it is the residual)
+                mix.add(m2 * 3 * c)  # q | k | v across frames
+                mix.add(m2 * c)  # SDPA out
+                mix.add(m2 * heads, fp32=True)
+                mix.add(m2 * c, fp32=True)  # the gated residual
+            stages.append((mix, _kept(m2 * c, fp32=True)))  # the fp32 residual: the block's input
+            stages.append((_resblock(_Ledger(), m2, c, B * V2 * c, mixed), _kept(m2 * c)))
         last = config.channels[-1]
         out_frames = T
         if config.head == "regression":
@@ -252,7 +258,7 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
         kept = 0
         for part, output in stages:
             parts = max(parts, kept + part.bytes(compute_bytes))
-            kept += output * compute_bytes
+            kept += output.bytes(compute_bytes)
         parts = max(parts, kept)  # the end of the forward pass
     else:
         for part, _ in stages:

@@ -21,8 +21,9 @@ per-vertex `(T, C, V)` one, so that V is free. Attention goes through
 `F.scaled_dot_product_attention`, which never materialises the V x V matrix (flash /
 memory-efficient kernels); 1x1 convolutions are `nn.Linear` over channels-last `(..., V, C)`
 tensors, which is the layout those kernels want. `model.activation_checkpointing = True` keeps only
-the inputs of the feature extractors and encoder stages for backward and reruns them there (an
-execution switch for huge V, not part of the architecture: neither in the config nor in checkpoints).
+the inputs of the feature extractors and of each stage's attention and block for backward and reruns
+them there (an execution switch for huge V, not part of the architecture: neither in the config nor
+in checkpoints).
 
 Switches beyond the paper (all in `AniFormerConfig`):
     attention="cross"       target-vertex queries attend to driving-vertex keys/values, so the
@@ -104,7 +105,7 @@ def attention_kernels(names: tuple[str, ...] | list[str]):
     return sdpa_kernel([ATTENTION_KERNELS[n] for n in names], set_priority=True)
 
 
-def run_block(block: nn.Module, checkpointed: bool, *args: torch.Tensor | None) -> torch.Tensor:
+def run_block(block, checkpointed: bool, *args: torch.Tensor | None) -> torch.Tensor:
     """`block(*args)`; checkpointed: autograd keeps only the inputs and reruns the block in backward."""
     if checkpointed and torch.is_grad_enabled():
         return checkpoint(block, *args, use_reentrant=False)
@@ -209,11 +210,16 @@ class EncoderStage(nn.Module):
         self.temporal = TemporalAttention(dim, config.heads) if config.temporal == "attention" else None
         self.block = SPAdaINResBlock(dim)
 
-    def forward(self, x: torch.Tensor, target: torch.Tensor, memory: torch.Tensor | None) -> torch.Tensor:
+    def mix(self, x: torch.Tensor, memory: torch.Tensor | None) -> torch.Tensor:
+        """Width change and attention: what the stage does across vertices (and frames)."""
         x = self.attention(self.proj(x), memory)
-        if self.temporal is not None:
-            x = self.temporal(x)
-        return self.block(x, target)
+        return x if self.temporal is None else self.temporal(x)
+
+    def forward(self, x: torch.Tensor, target: torch.Tensor, memory: torch.Tensor | None,
+                checkpointed: bool = False) -> torch.Tensor:
+        # Checkpointed in two parts, so that backward reruns either the attention or the block, never both at once.
+        x = run_block(self.mix, checkpointed, x, memory)
+        return run_block(self.block, checkpointed, x, target)
 
 
 class AniFormer(nn.Module):
@@ -254,7 +260,7 @@ class AniFormer(nn.Module):
                 features = features.amax(dim=2, keepdim=True).expand(B, T, V2, -1)
             x = features
         for stage in self.stages:
-            x = run_block(stage, checkpointed, x, target, memory)
+            x = stage(x, target, memory, checkpointed)
         if self.config.head == "regression":
             x = x.mean(dim=1, keepdim=True)  # average over the sequence, one output mesh
         return 2 * torch.tanh(self.to_xyz(x))
