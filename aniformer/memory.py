@@ -150,8 +150,9 @@ class _Ledger:
         self.fp32 += other.fp32
 
 
-def _extractor(ledger: _Ledger, points: int, channels: tuple[int, ...]) -> _Ledger:
+def _extractor(points: int, channels: tuple[int, ...]) -> _Ledger:
     """FeatureExtractor over `points` vertices-in-frames: Linear -> InstanceNorm -> ReLU per layer."""
+    ledger = _Ledger()
     ledger.add(points * 3)  # the xyz input, saved by the first Linear
     for c in channels:
         ledger.add(points * c, fp32=True)  # Linear out: saved by var_mean (its fp32 copy under autocast)
@@ -166,8 +167,9 @@ def _kept(elements: int, fp32: bool = False) -> _Ledger:
     return ledger
 
 
-def _resblock(ledger: _Ledger, m: int, c: int, modulation: int, mixed: bool) -> _Ledger:
+def _resblock(m: int, c: int, modulation: int, mixed: bool) -> _Ledger:
     """SPAdaINResBlock on `m` vertices-in-frames of width c; `modulation` = elements of one (B, 1, V, C) scale."""
+    ledger = _Ledger()
     for path in range(3):  # norm1 -> fc1, norm2 -> fc2, norm_skip -> fc_skip
         second = path == 1  # its input is fc1's ReLU output (compute dtype): norm copies it to fp32
         if second and mixed:
@@ -202,23 +204,23 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
     if model_name == "npt":
         S = B * T  # frames are samples
         m1, m2 = S * V1, S * V2
-        stages.append((_extractor(_Ledger(), m1, ext), _Ledger()))  # output not kept: an add / concat takes it
+        stages.append((_extractor(m1, ext), _Ledger()))  # output not kept: an add / concat takes it
         if V1 != V2:
             ledger.add(m1 * ext[-1], fp32=True)  # amax saves its input
         ledger.add(m2 * (ext[-1] + 3))  # [pose, identity] concatenated, saved by the first projection
         widths = tuple(config.channels)
         for c in widths:
             ledger.add(m2 * c)  # projection out (the block's input)
-            stages.append((_resblock(_Ledger(), m2, c, S * V2 * c, mixed), _kept(m2 * c)))
+            stages.append((_resblock(m2, c, S * V2 * c, mixed), _kept(m2 * c)))
         out_frames = T
     elif model_name == "aniformer":
         cf, heads = ext[-1], config.heads
         m1, m2 = B * T * V1, B * T * V2
-        stages.append((_extractor(_Ledger(), m1, ext), _Ledger()))  # output not kept: an add / concat takes it
+        stages.append((_extractor(m1, ext), _Ledger()))  # output not kept: an add / concat takes it
         ledger.add(m1 * cf)  # features + temporal embedding (eq. 1), saved by the first proj / to_kv
         cross = config.attention == "cross"
         if cross:
-            stages.append((_extractor(_Ledger(), B * V2, ext), _Ledger()))
+            stages.append((_extractor(B * V2, ext), _Ledger()))
             ledger.add(m2 * cf)  # the expanded target features, materialised for the first proj
         elif config.pool_driving or V1 != V2:
             ledger.add(m1 * cf, fp32=True)  # amax saves its input
@@ -238,7 +240,7 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
                 mix.add(m2 * heads, fp32=True)
                 mix.add(m2 * c, fp32=True)  # the gated residual
             stages.append((mix, _kept(m2 * c, fp32=True)))  # the fp32 residual: the block's input
-            stages.append((_resblock(_Ledger(), m2, c, B * V2 * c, mixed), _kept(m2 * c)))
+            stages.append((_resblock(m2, c, B * V2 * c, mixed), _kept(m2 * c)))
         last = config.channels[-1]
         out_frames = T
         if config.head == "regression":

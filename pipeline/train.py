@@ -59,7 +59,7 @@ class TrainConfig:
     placement_strategy: str = "PACK"  # SPREAD puts the workers on different nodes
     precision: str = "auto"  # auto: bf16 on GPUs that have it, fp16 + GradScaler on older (V100), fp32 on CPU
     compile: str = "none"  # torch.compile mode for the training forward/backward (reduce-overhead: CUDA graphs)
-    activation_checkpointing: bool = False  # keep each stage's input only, rerun it in backward (huge V)
+    activation_checkpointing: bool = False  # model parts keep only their inputs, rerun in backward (huge V)
     attention_kernels: tuple[str, ...] = ()  # SDPA kernels allowed, by preference (e.g. cudnn, flash, efficient)
     max_failures: int = 2
     keep_checkpoints: int = 2

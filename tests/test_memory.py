@@ -17,10 +17,12 @@ ROOT = Path(__file__).resolve().parents[1]
 TINY = {"channels": [64, 32], "extractor_channels": [16, 64], "heads": 8}
 
 
-def saved_activation_bytes(name: str, config: dict, B: int, V1: int, V2: int, precision: str) -> int:
+def saved_activation_bytes(name: str, config: dict, B: int, V1: int, V2: int, precision: str,
+                           activation_checkpointing: bool = False) -> int:
     """Bytes of the distinct storages autograd saves for backward (forward + loss), parameters excluded."""
     torch.manual_seed(0)
     model = build_model(name, config)
+    model.activation_checkpointing = activation_checkpointing
     T = model.config.window
     driving, target = torch.randn(B, T, V1, 3), torch.randn(B, V2, 3)
     faces = torch.randint(0, V2, (B, 2 * V2, 3))
@@ -61,6 +63,17 @@ def test_activation_count_matches_autograd(name, config, B, V1, V2, precision):
     predicted, _ = count_activations(name, cfg, B, (V1, V2), precision)
     actual = saved_activation_bytes(name, config, B, V1, V2, precision)
     assert predicted == pytest.approx(actual, rel=0.06), (predicted / 2**20, actual / 2**20)
+
+
+@pytest.mark.parametrize("name,config", [
+    ("aniformer", dict(TINY, window=3)),
+    ("aniformer", dict(TINY, window=3, attention="cross", temporal="attention")),
+    ("npt", dict(channels=[35, 16], extractor_channels=[8, 16, 32], window=3)),
+], ids=["paper", "cross-temporal", "npt"])
+def test_activation_checkpointing_saves_a_fraction(name, config):
+    """With train.activation_checkpointing autograd keeps only the checkpointed parts' inputs."""
+    plain = saved_activation_bytes(name, config, 2, 50, 50, "fp32")
+    assert saved_activation_bytes(name, config, 2, 50, 50, "fp32", activation_checkpointing=True) < 0.6 * plain
 
 
 def test_parameters_are_counted_exactly_without_allocating():
