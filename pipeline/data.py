@@ -630,11 +630,22 @@ def worker_plan(workers: int, units: int) -> tuple[int, float]:
     return workers, round(per_actor, 3)
 
 
+def quiet_ray_data() -> None:
+    """No Ray Data progress bars or execution banners from this process, nor from the Ray Train
+    workers it starts next (Ray Train copies the driver's DataContext to them): in a job's log they
+    are a line per refresh for every dataset of every epoch. Progress is ours (tqdm, MLflow)."""
+    from ray.data import DataContext
+
+    ctx = DataContext.get_current()
+    ctx.enable_progress_bars = False
+    ctx.print_on_execution_start = False
+
+
 def generate_bank(cfg: DataConfig, out_dir: str | os.PathLike, *, workers: int | None = None, progress: bool = True) -> dict:
     """Generate the synthetic mesh bank of ``cfg`` into ``out_dir`` (new or empty) on the connected
     Ray cluster; returns the manifest. Needs ``ray.init`` first. Same ``cfg`` -> same bytes."""
     import ray
-    from ray.data import DataContext, TaskPoolStrategy
+    from ray.data import TaskPoolStrategy
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
@@ -644,9 +655,7 @@ def generate_bank(cfg: DataConfig, out_dir: str | os.PathLike, *, workers: int |
     manifest = plan_bank(cfg)
     layout = shard_layout(manifest, cfg.shard_mb)
     n_workers, cpus = worker_plan(workers if workers is not None else cfg.workers, len(layout))
-    ctx = DataContext.get_current()
-    ctx.enable_progress_bars = False
-    ctx.print_on_execution_start = False
+    quiet_ray_data()
     ds = ray.data.from_items([{"shard": i} for i in range(len(layout))], override_num_blocks=len(layout))
     ds = ds.map_batches(
         _generate_shards,

@@ -33,7 +33,7 @@ from aniformer.losses import LossConfig, loss_terms
 from aniformer.metrics import PMD_SCALE, pmd
 from aniformer.model import ATTENTION_KERNELS, attention_kernels
 from pipeline.data import DataConfig as PairDataConfig
-from pipeline.data import data_config, pair_dataset
+from pipeline.data import data_config, pair_dataset, quiet_ray_data
 from pipeline.tracking import Tracker
 
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
@@ -270,6 +270,7 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
     re-created with the same name resumes from them. `loop`, `loop_config` (merged into the loop's
     config) and `callbacks` let a sweep trial add its own reporting to the same training."""
     cfg = spec.train
+    quiet_ray_data()  # before the trainer: it captures the DataContext for its workers
     datasets = {"train": pair_dataset(bank_dir, "train", spec.data, epochs=cfg.epochs)}
     for split in EVAL_SPLITS:
         datasets[split] = pair_dataset(bank_dir, split, spec.data)
