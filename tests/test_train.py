@@ -83,12 +83,18 @@ def logged(client, run, key) -> list[tuple[int, float]]:
 
 
 def test_two_worker_ddp_on_two_nodes_is_tracked_in_mlflow(tmp_path, tiny_bank, ray_address, repo_root):
+    """DDP over two nodes with the GPU execution options on, as a GPU cluster would run it, on CPU:
+    torch.compile (inductor's C++ backend) around DDP (so DDPOptimizer splits the graph), activation
+    checkpointing and an SDPA kernel preference. The checkpoints hold the plain model's weights."""
     out = tmp_path / "ddp"
     output = finish(start_job(repo_root, ray_address, out, tiny_bank, *TWO_WORKERS,
-                              "train.placement_strategy=STRICT_SPREAD", "train.epochs=2", "train.render_every=1"))
+                              "train.placement_strategy=STRICT_SPREAD", "train.epochs=2", "train.render_every=1",
+                              "train.compile=default", "train.activation_checkpointing=true",
+                              "train.attention_kernels=[flash,math]"))
     assert str(out / "best.pt") in output and "MLflow run:" in output
     state = load_checkpoint(out / "best.pt")
     assert set(KEYS) <= set(state) and state["epoch"] >= 1
+    assert not any("_orig_mod" in key or key.startswith("module.") for key in state["model"])
     model, _ = model_from_checkpoint(out / "last.pt")
     assert load_checkpoint(out / "last.pt")["epoch"] == 2
 
@@ -97,10 +103,14 @@ def test_two_worker_ddp_on_two_nodes_is_tracked_in_mlflow(tmp_path, tiny_bank, r
     run = runs[0]
     assert run.info.status == "FINISHED"
     assert run.data.tags["world_size"] == "2"
-    assert run.data.params["model.name"] == "aniformer" and "train.lr" in run.data.params
+    params = run.data.params
+    assert params["model.name"] == "aniformer" and "train.lr" in params
+    assert params["train.compile"] == "default" and params["train.activation_checkpointing"] == "True"
+    assert "flash" in params["train.attention_kernels"]
     for key in ("loss", "loss_rec", "loss_motion", "loss_appearance", "pmd_seen", "pmd_unseen",
                 "samples_per_s", "peak_memory_gb"):
-        assert [step for step, _ in logged(client, run, key)] == [1, 2], key
+        history = logged(client, run, key)
+        assert [step for step, _ in history] == [1, 2] and all(math.isfinite(v) for _, v in history), key
     artifacts = {a.path for a in client.list_artifacts(run.info.run_id, "filmstrips")}
     assert artifacts == {"filmstrips/epoch_0001.png", "filmstrips/epoch_0002.png"}
     assert [a.path for a in client.list_artifacts(run.info.run_id, "checkpoints")] == ["checkpoints/best.pt"]
@@ -112,7 +122,7 @@ def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_
     victim = next(node for node in ray_cluster.list_all_nodes() if node is not ray_cluster.head_node)
     # STRICT_SPREAD: one training worker is on each node, so one of them dies with `victim`.
     job = start_job(repo_root, ray_address, out, tiny_bank, *TWO_WORKERS, "train.placement_strategy=STRICT_SPREAD",
-                    "train.epochs=4", "train.max_failures=3")
+                    "train.epochs=3", "train.max_failures=3")
     try:
         wait_for_epoch(out, job, 2)
         ray_cluster.remove_node(victim, allow_graceful=False)  # SIGKILL, like a lost machine
@@ -128,14 +138,14 @@ def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_
     epochs = [value for _, value in logged(client, run, "epoch")]
     # The epoch in flight at the kill may be redone; nothing before the restored checkpoint is.
     assert epochs.count(1.0) == 1, f"the epoch counter restarted: {epochs}"
-    assert sorted(set(epochs)) == [1.0, 2.0, 3.0, 4.0], epochs
-    assert epochs[-1] == 4 and load_checkpoint(out / "last.pt")["epoch"] == 4
+    assert sorted(set(epochs)) == [1.0, 2.0, 3.0], epochs
+    assert epochs[-1] == 3 and load_checkpoint(out / "last.pt")["epoch"] == 3
     assert run.info.status == "FINISHED"
 
 
 def test_interrupted_driver_resumes_when_run_again(tmp_path, tiny_bank, ray_address, repo_root):
     out = tmp_path / "resume"
-    job = start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=4")
+    job = start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=3")
     # Not just a checkpoint file on disk: Ray Train must have registered it, or a rerun has nothing to
     # restore. The run logging epoch 2 means the checkpoint of epoch 1 is registered.
     wait_for_epoch(out, job, 2)
@@ -145,45 +155,45 @@ def test_interrupted_driver_resumes_when_run_again(tmp_path, tiny_bank, ray_addr
     client, (run,) = job_runs(out)
     assert run.info.status == "KILLED"  # never left RUNNING
 
-    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=4"))
+    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=3"))
     client, runs = job_runs(out)
     assert len(runs) == 1 and runs[0].info.status == "FINISHED"  # the same MLflow run, continued
     resumed = logged(client, runs[0], "resumed_from_epoch")
     assert resumed and resumed[0][1] >= 1
-    assert load_checkpoint(out / "last.pt")["epoch"] == 4
+    assert load_checkpoint(out / "last.pt")["epoch"] == 3
 
 
-def test_bad_config_fails_with_one_line_before_starting_ray(tmp_path, repo_root):
-    for override, message in [("train.epochs=0", "epochs must be >= 1"),
-                              ("model.attention=both", "attention must be one of"),
-                              ("model.name=limp", "unknown name"),
-                              ("train.wings=3", "unknown key(s) in [train]"),
-                              ("train.compile=fast", "compile must be one of"),
-                              ("train.attention_kernels=[flash,turbo]", "attention_kernels: unknown ['turbo']")]:
-        run = subprocess.run([sys.executable, str(repo_root / "jobs/train.py"), "--config",
-                              str(repo_root / "configs/tiny.yaml"), "--out", str(tmp_path / "x"), override],
-                             capture_output=True, text=True, timeout=120, env={**os.environ, "RAY_ADDRESS": ""})
-        assert run.returncode == 2, run.stderr
-        assert run.stderr.strip().count("\n") == 0 and message in run.stderr, run.stderr
-        assert not (tmp_path / "x").exists()
+BAD_OVERRIDES = [("train.epochs=0", "epochs must be >= 1"),
+                 ("model.attention=both", "attention must be one of"),
+                 ("model.name=limp", "unknown name"),
+                 ("train.wings=3", "unknown key(s) in [train]"),
+                 ("train.compile=fast", "compile must be one of"),
+                 ("train.attention_kernels=[flash,turbo]", "attention_kernels: unknown ['turbo']")]
 
 
-@pytest.mark.slow
-def test_compiled_checkpointed_training_job(tmp_path, tiny_bank, ray_address, repo_root):
-    """The GPU execution options through a real job, on CPU: torch.compile (inductor's C++ backend)
-    around the model, activation checkpointing and an SDPA kernel preference. They are recorded in
-    the run, and the checkpoint holds the plain model's weights."""
-    out = tmp_path / "compiled"
-    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=1", "train.compile=default",
-                     "train.activation_checkpointing=true", "train.attention_kernels=[flash,math]"))
-    client, runs = job_runs(out)
-    params = runs[0].data.params
-    assert params["train.compile"] == "default" and params["train.activation_checkpointing"] == "True"
-    assert "flash" in params["train.attention_kernels"]
-    [(_, loss)] = logged(client, runs[0], "loss")
-    assert math.isfinite(loss)
-    model, _ = model_from_checkpoint(out / "best.pt")
-    assert not any("_orig_mod" in key for key in load_checkpoint(out / "best.pt")["model"])
+@pytest.mark.parametrize(("override", "message"), BAD_OVERRIDES, ids=[o for o, _ in BAD_OVERRIDES])
+def test_bad_config_fails_with_one_line_before_starting_ray(tmp_path, repo_root, capsys, override, message):
+    """jobs/train.py's main under cli.run, in this process (a subprocess per case costs ~8 s of imports)."""
+    import importlib.util
+
+    from aniformer.cli import run
+
+    spec = importlib.util.spec_from_file_location("train_job", repo_root / "jobs/train.py")
+    job = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(job)
+    with pytest.raises(SystemExit) as exit_:
+        run(job.main, ["--config", str(repo_root / "configs/tiny.yaml"), "--out", str(tmp_path / "x"), override])
+    stderr = capsys.readouterr().err
+    assert exit_.value.code == 2 and stderr.strip().count("\n") == 0 and message in stderr, stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_bad_config_exits_2_from_the_shell(tmp_path, repo_root):
+    run = subprocess.run([sys.executable, str(repo_root / "jobs/train.py"), "--config",
+                          str(repo_root / "configs/tiny.yaml"), "--out", str(tmp_path / "x"), "train.epochs=0"],
+                         capture_output=True, text=True, timeout=120, env={**os.environ, "RAY_ADDRESS": ""})
+    assert run.returncode == 2 and run.stderr.strip() == "error: [train] epochs must be >= 1, got 0", run.stderr
+    assert not (tmp_path / "x").exists()
 
 
 def test_training_reads_pairs_in_id_order(tmp_path, tiny_bank, repo_root):
