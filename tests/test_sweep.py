@@ -92,7 +92,7 @@ SWEEP = ["sweep.num_samples=3", "sweep.max_concurrent=1", "sweep.search=optuna",
          # in this order: 4096 cannot fit within 16x accumulation (skipped); 64 fits at 16 x 4 (adjusted);
          # batch 4 fits (ok) and is the trial the interruption catches running
          "sweep.points=[{window: 8, batch_size: 4096}, {window: 8, batch_size: 64}, {window: 3, batch_size: 4}]",
-         "train.epochs=2", "train.render_every=2"]
+         "train.epochs=1", "train.render_every=1"]
 
 
 def _sweep_job(out: Path, bank: Path, ray_address: str, log: Path) -> subprocess.Popen:
