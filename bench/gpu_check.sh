@@ -1,35 +1,81 @@
 #!/usr/bin/env bash
-# The GPU rows of docs/benchmarks.md in one run (issue 8), sized for ~8 minutes on one H100/H200:
-#   1. model_bench at V = 6,890, T = 3: the dense fp32 reference, ours eager and ours compiled
-#      (cuDNN attention preferred), with MFU, error vs fp32 and the attention op really run;
-#   2. full resolution (Anny `notoes`, 12,272 v) compiled with activation checkpointing: T = 3 at
-#      batch 8 and T = 8 at batch 2;
-#   3. the memory model against torch.cuda.max_memory_allocated (bench/memory_calibration.py).
-# Usage: bash bench/gpu_check.sh [OUT_DIR]   (each section's table also goes to OUT_DIR/*.md)
+# The GPU rows of docs/benchmarks.md in one run of under 10 minutes on one H100/H200 (issue 8):
+#   1. the dense fp32 reference at V = 6,890, T = 3, B = 1 and 2 (bench/model_bench.py);
+#   2. ours eager at B = 16: cuDNN attention preferred, torch's default preference (flash), and
+#      activation checkpointing (memory per sample);
+#   3. ours compiled at B = 16 with the faster of the two kernel preferences;
+#   4. full resolution (Anny `notoes`, 12,272 v) eager with activation checkpointing: T = 3 at batch 8
+#      and T = 8 at batch 4;
+#   5. the memory model against torch.cuda.max_memory_allocated (bench/memory_calibration.py);
+#   6. compiled with activation checkpointing at B = 16, in whatever time is left.
+# Every model_bench row comes with the warm-up (compile) time and the top kernels of a train step.
+# Each section has a time limit, so that a slow compile cannot starve the rest; a failed or
+# timed-out section is reported and the next one runs.
+# Usage: bash bench/gpu_check.sh [OUT_DIR] [SECONDS]   (everything is also appended to OUT_DIR/gpu_check.md)
 # Needs torch (CUDA), einops, numpy, pyyaml and trimesh; on a machine without trimesh (pure Python),
 # put its wheel in .whl/ first (`pip download --no-deps trimesh==5.2.0 -d .whl`): it is installed
 # from there into /tmp/site.
-set -euo pipefail
+set -uo pipefail
 cd "$(dirname "$0")/.."
 out="${1:-bench/results/gpu}"
+budget="${2:-580}"
 mkdir -p "$out"
+log="$out/gpu_check.md"
+: >"$log"
 if [ -d .whl ]; then
   python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
   export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 fi
 export PYTHONUNBUFFERED=1
-python3 - <<'PY'
-import torch
-print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(), torch.cuda.get_device_capability())
-PY
-# Dense bf16 peak of the card (H100/H200 SXM: 989 TFLOP/s; A100: 312; V100: 125 in fp16).
+
+section() {  # section TITLE SECONDS COMMAND...: run COMMAND for at most SECONDS, log it under TITLE
+  local title=$1 limit=$2
+  shift 2
+  if [ "$limit" -le 10 ]; then
+    echo -e "\n## $title: skipped, out of time" | tee -a "$log"
+    return
+  fi
+  echo -e "\n## $title ($(date -u +%T), limit ${limit} s)\n" | tee -a "$log"
+  timeout "$limit" "$@" 2>&1 | tee -a "$log"
+  local rc=${PIPESTATUS[0]}
+  [ "$rc" -eq 0 ] || echo "exit $rc$([ "$rc" -eq 124 ] && echo ': timed out')" | tee -a "$log"
+}
+
+train_ms() {  # the train-step-per-sample cell of the first row of impl $1 in the table on stdin; inf if none
+  awk -F'|' -v impl="$1" '$2 ~ "^ *" impl " *$" { v = $9 + 0; print (v > 0 ? v : "inf"); found = 1; exit }
+    END { if (!found) print "inf" }'
+}
+
+section environment 30 bash -c 'nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.sm --format=csv
+  python3 -c "import torch; print(torch.__version__, torch.version.cuda, torch.backends.cudnn.version(), torch.cuda.get_device_name(), torch.cuda.get_device_capability())"'
+# Dense bf16 peak of the card, for MFU (H100/H200 SXM: 989 TFLOP/s; A100: 312; V100: 125 in fp16).
 peak=$(python3 -c "import torch; n=torch.cuda.get_device_name(); print(989 if ('H100' in n or 'H200' in n) else 312 if 'A100' in n else 125)")
-kernels=(--attention-kernels cudnn flash efficient)
-python3 bench/model_bench.py --device cuda --vertices 6890 --batch 1 --impl dense-fp32 --peak-tflops "$peak" | tee "$out/reference.md"
-python3 bench/model_bench.py --device cuda --vertices 6890 --batch 16 --impl ours ours-compiled --peak-tflops "$peak" \
-    "${kernels[@]}" | tee "$out/ours.md"
-python3 bench/model_bench.py --device cuda --vertices 12272 --batch 8 --impl ours-compiled --activation-checkpointing \
-    --peak-tflops "$peak" "${kernels[@]}" | tee "$out/full_resolution_t3.md"
-python3 bench/model_bench.py --device cuda --vertices 12272 --window 8 --batch 2 --impl ours-compiled \
-    --activation-checkpointing --peak-tflops "$peak" "${kernels[@]}" | tee "$out/full_resolution_t8.md"
-python3 bench/memory_calibration.py --device cuda --steps 3 | tee "$out/memory.md"
+bench=(python3 bench/model_bench.py --device cuda --vertices 6890 --peak-tflops "$peak")
+
+section "reference: dense fp32, V=6890" 70 "${bench[@]}" --impl dense-fp32 --batch 1 2 --steps 5
+section "ours eager, cuDNN attention preferred" 45 "${bench[@]}" --impl ours --batch 16 --steps 5 \
+  --attention-kernels cudnn flash efficient
+section "ours eager, torch's kernel preference" 45 "${bench[@]}" --impl ours --batch 16 --steps 5
+cudnn_ms=$(sed -n '/^## ours eager, cuDNN/,/^## ours eager, torch/p' "$log" | train_ms ours)
+default_ms=$(sed -n '/^## ours eager, torch/,$p' "$log" | train_ms ours)
+kernels=()
+choice="torch's preference"
+if python3 -c "import sys; sys.exit(not float('$cudnn_ms') < float('$default_ms'))"; then
+  kernels=(--attention-kernels cudnn flash efficient)
+  choice="cuDNN preferred"
+fi
+echo -e "\ntrain step per sample: cuDNN preferred $cudnn_ms ms, torch's preference $default_ms ms; from here on: $choice" \
+  | tee -a "$log"
+section "ours eager, activation checkpointing" 45 "${bench[@]}" --impl ours --batch 16 --steps 5 \
+  --activation-checkpointing "${kernels[@]}"
+section "ours compiled" 200 "${bench[@]}" --impl ours-compiled --batch 16 "${kernels[@]}"
+section "full resolution, eager, activation checkpointing" 80 \
+  python3 bench/model_bench.py --device cuda --vertices 12272 --window 3 --batch 8 --steps 3 --impl ours \
+  --activation-checkpointing --peak-tflops "$peak" "${kernels[@]}"
+section "full resolution T=8, eager, activation checkpointing" 50 \
+  python3 bench/model_bench.py --device cuda --vertices 12272 --window 8 --batch 4 --steps 3 --impl ours \
+  --activation-checkpointing --peak-tflops "$peak" "${kernels[@]}"
+section "memory model vs max_memory_allocated" 110 python3 bench/memory_calibration.py --device cuda --steps 2
+section "ours compiled, activation checkpointing" $((budget - SECONDS)) "${bench[@]}" --impl ours-compiled \
+  --batch 16 --activation-checkpointing "${kernels[@]}"
+echo -e "\ndone in $SECONDS s" | tee -a "$log"

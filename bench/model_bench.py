@@ -48,15 +48,22 @@ def open_gates(model: AniFormer) -> None:
                 p.fill_(0.5)
 
 
-def attention_ops(fn) -> str:
-    """The aten attention ops that `fn` runs: which SDPA kernel was really selected (also when compiled)."""
+def profile_step(fn, device: str) -> tuple[str, list[tuple[str, float]], float]:
+    """Profile one call of `fn`: the aten attention ops it ran (which SDPA kernel was really selected,
+    also when compiled) and, on a GPU, its kernels by device time: ([(name, ms)] top 10, total ms)."""
+    from torch.autograd import DeviceType
     from torch.profiler import ProfilerActivity, profile
 
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device == "cuda" else [])
+    with profile(activities=activities) as prof:
         fn()
+        if device == "cuda":
+            torch.cuda.synchronize()
     prefix = "aten::_scaled_dot_product_"
     names = sorted({e.name.removeprefix(prefix) for e in prof.events() if e.name.startswith(prefix)})
-    return ", ".join(names) or "none (inlined)"
+    kernels = sorted(((e.key, e.self_device_time_total / 1e3) for e in prof.key_averages()
+                      if e.device_type == DeviceType.CUDA), key=lambda k: -k[1])
+    return ", ".join(names) or "none (inlined)", kernels[:10], sum(ms for _, ms in kernels)
 
 
 def measure(impl: str, device: str, vertices: int, window: int, batch: int, steps: int, threads: int,
@@ -97,10 +104,15 @@ def measure(impl: str, device: str, vertices: int, window: int, batch: int, step
         loss.backward()
         optimizer.step()
 
+    warmup_s = 0.0
+
     def timed(fn) -> float:
+        nonlocal warmup_s
+        start = time.perf_counter()
         for _ in range(3 if impl == "ours-compiled" else 1):  # warm-up: compilation, CUDA graph recording
             fn()
         sync()
+        warmup_s += time.perf_counter() - start
         start = time.perf_counter()
         for _ in range(steps):
             fn()
@@ -122,11 +134,12 @@ def measure(impl: str, device: str, vertices: int, window: int, batch: int, step
     with torch.no_grad(), attention_kernels(["math"]):
         reference = model(driving[:1], target[:1]).float()
     error = ((forward().float() - reference).norm() / reference.norm()).item()
-    ops = attention_ops(train_step)
+    ops, top_kernels, kernel_ms = profile_step(train_step, device)
     return dict(impl=impl, device=device, vertices=vertices, window=window, batch=batch,
                 forward_ms=forward_s * 1e3, step_ms_per_sample=step_s * 1e3 / batch, peak_gib=peak_gib,
                 dtype="bf16" if use_bf16 else "fp32", relative_error=error, forward_tflops=flops / forward_s / 1e12,
-                train_tflops=3 * flops * batch / step_s / 1e12, attention=ops)
+                train_tflops=3 * flops * batch / step_s / 1e12, attention=ops,
+                warmup_s=warmup_s, top_kernels=top_kernels, kernel_ms=kernel_ms)
 
 
 def main() -> None:
@@ -156,6 +169,7 @@ def main() -> None:
     print("| impl | device | dtype | V | T | batch | forward B=1 (ms) | train step / sample (ms) | peak (GiB) "
           "| forward TFLOP/s | train TFLOP/s | train MFU | error vs fp32 | attention op (train step) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    profiles = []
     for v in args.vertices:
         for batch in args.batch:
             for impl in args.impl:
@@ -175,7 +189,12 @@ def main() -> None:
                       f"{r['forward_tflops']:.3g} | {r['train_tflops']:.3g} | {mfu} | {r['relative_error']:.1e} | "
                       f"{r['attention']} |",
                       flush=True)
-
+                profiles.append(r)
+    for r in profiles:  # where a training step's device time goes (GPU only: CPU runs list no kernels)
+        print(f"\n{r['impl']}, V={r['vertices']}, T={r['window']}, B={r['batch']}: warm-up {r['warmup_s']:.1f} s"
+              + (f"; kernels of one profiled train step {r['kernel_ms']:.1f} ms, the top 10:" if r["top_kernels"] else ""))
+        for name, ms in r["top_kernels"]:
+            print(f"    {ms:8.2f} ms {ms / r['kernel_ms']:6.1%}  {name[:100]}")
 
 if __name__ == "__main__":
     main()
