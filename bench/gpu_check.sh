@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
-# The GPU rows of docs/benchmarks.md in one run of under 10 minutes on one H100/H200 (issue 8):
+# The GPU rows of docs/benchmarks.md in one run of under 10 minutes on one H100/H200 (issue 8; the
+# 2026-11-26 H100 run took ~8 minutes with every section finished):
 #   1. the dense fp32 reference at V = 6,890, T = 3, B = 1 and 2 (bench/model_bench.py);
 #   2. ours eager at B = 16: cuDNN attention preferred, torch's default preference (flash), and
 #      activation checkpointing (memory per sample);
 #   3. ours compiled at B = 16 with the faster of the two kernel preferences;
-#   4. full resolution (Anny `notoes`, 12,272 v) eager with activation checkpointing: T = 3 at batch 8
-#      and T = 8 at batch 4;
+#   4. full resolution (Anny `notoes`, 12,272 v) with activation checkpointing: T = 3 at batch 8
+#      eager and compiled, T = 8 at batch 8 eager;
 #   5. the memory model against torch.cuda.max_memory_allocated (bench/memory_calibration.py);
 #   6. compiled with activation checkpointing at B = 16, in whatever time is left.
 # Every model_bench row comes with the warm-up (compile) time and the top kernels of a train step.
@@ -72,8 +73,11 @@ section "ours compiled" 200 "${bench[@]}" --impl ours-compiled --batch 16 "${ker
 section "full resolution, eager, activation checkpointing" 80 \
   python3 bench/model_bench.py --device cuda --vertices 12272 --window 3 --batch 8 --steps 3 --impl ours \
   --activation-checkpointing --peak-tflops "$peak" "${kernels[@]}"
-section "full resolution T=8, eager, activation checkpointing" 50 \
-  python3 bench/model_bench.py --device cuda --vertices 12272 --window 8 --batch 4 --steps 3 --impl ours \
+section "full resolution, compiled, activation checkpointing" 120 \
+  python3 bench/model_bench.py --device cuda --vertices 12272 --window 3 --batch 8 --steps 3 --impl ours-compiled \
+  --activation-checkpointing --peak-tflops "$peak" "${kernels[@]}"
+section "full resolution T=8, eager, activation checkpointing" 60 \
+  python3 bench/model_bench.py --device cuda --vertices 12272 --window 8 --batch 8 --steps 3 --impl ours \
   --activation-checkpointing --peak-tflops "$peak" "${kernels[@]}"
 section "memory model vs max_memory_allocated" 110 python3 bench/memory_calibration.py --device cuda --steps 2
 section "ours compiled, activation checkpointing" $((budget - SECONDS)) "${bench[@]}" --impl ours-compiled \

@@ -7,7 +7,8 @@ CPU uses) for `--steps` steps. What is measured:
     cpu   peak RSS (VmHWM) minus the RSS just before the model is built, after a warm-up step
           of a tiny model has loaded every lazily-imported kernel and module (~100 MB that are
           process overhead, not step memory)
-    cuda  torch.cuda.max_memory_allocated after the same warm-up (reset before the model is built)
+    cuda  torch.cuda.max_memory_allocated after the same warm-up (reset before the model is built);
+          max_memory_reserved, what the caching allocator held from the device, is printed beside it
 
 and compared with `MemoryEstimate.step` (static + allocator factor x dynamic). `--fit` prints the
 allocator factor that makes the median error zero.
@@ -127,6 +128,7 @@ def child(spec: dict) -> dict:
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats(device)
         base = torch.cuda.memory_allocated(device)
+        base_reserved = torch.cuda.memory_reserved(device)
     else:
         base = _rss_bytes()
     started = time.perf_counter()
@@ -134,9 +136,11 @@ def child(spec: dict) -> dict:
     if device.type == "cuda":
         torch.cuda.synchronize()
         peak = torch.cuda.max_memory_allocated(device)
+        reserved = torch.cuda.max_memory_reserved(device) - base_reserved
     else:
         peak = _peak_rss_bytes()
-    return {"measured": peak - base, "baseline": base, "seconds": time.perf_counter() - started}
+        reserved = None
+    return {"measured": peak - base, "baseline": base, "reserved": reserved, "seconds": time.perf_counter() - started}
 
 
 def measure(model: dict, vertices: int, batch: int, precision: str = "fp32", device: str = "cpu",
@@ -184,8 +188,10 @@ def main(argv: list[str]) -> None:
     grid = GRIDS[args.grid or ("gpu" if args.device.startswith("cuda") else "cpu")]
     kind = "max_memory_allocated" if args.device.startswith("cuda") else (
         "peak RSS - baseline" + (", mmap threshold fixed" if args.mmap else ", default malloc"))
-    print(f"| config | V | T | B | precision | predicted (MiB) | measured: {kind} (MiB) | error | s/step |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    cuda = args.device.startswith("cuda")
+    reserved = " max_memory_reserved (MiB) |" if cuda else ""
+    print(f"| config | V | T | B | precision | predicted (MiB) | measured: {kind} (MiB) | error |{reserved} s/step |")
+    print("|---|---|---|---|---|---|---|---|---|" + ("---|" if cuda else ""))
     errors, factors = [], []
     for label, model, V, B, precision, *checkpointed in grid:
         ac = bool(checkpointed and checkpointed[0])
@@ -197,7 +203,8 @@ def main(argv: list[str]) -> None:
         held = estimate.parameters + estimate.optimizer + estimate.ddp_buckets
         factors.append((got["measured"] - held) / dynamic)
         print(f"| {label} | {V} | {model['window']} | {B} | {precision} | {estimate.step / 2**20:.0f} | "
-              f"{got['measured'] / 2**20:.0f} | {100 * error:+.1f}% | {got['seconds'] / args.steps:.1f} |", flush=True)
+              f"{got['measured'] / 2**20:.0f} | {100 * error:+.1f}% |"
+              + (f" {got['reserved'] / 2**20:.0f} |" if cuda else "") + f" {got['seconds'] / args.steps:.1f} |", flush=True)
     abs_errors = [abs(e) for e in errors]
     print(f"\nmean |error| {100 * statistics.mean(abs_errors):.1f}%, max |error| {100 * max(abs_errors):.1f}% "
           f"over {len(errors)} configs ({args.device})")
