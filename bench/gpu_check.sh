@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU rows of docs/benchmarks.md in one run of under 10 minutes on one H100/H200 (issue 8; the
 # 2026-11-26 H100 run took ~8 minutes with every section finished):
-#   1. the dense fp32 reference at V = 6,890, T = 3, B = 1 and 2 (bench/model_bench.py);
+#   1. the dense fp32 reference at V = 6,890, T = 3, B = 1 and 2, also with TF32 matmuls (bench/model_bench.py);
 #   2. ours eager at B = 16: cuDNN attention preferred, torch's default preference (flash), and
 #      activation checkpointing (memory per sample);
 #   3. ours compiled at B = 16 with the faster of the two kernel preferences;
@@ -53,7 +53,7 @@ section environment 30 bash -c 'nvidia-smi --query-gpu=name,memory.total,driver_
 peak=$(python3 -c "import torch; n=torch.cuda.get_device_name(); print(989 if ('H100' in n or 'H200' in n) else 312 if 'A100' in n else 125)")
 bench=(python3 bench/model_bench.py --device cuda --vertices 6890 --peak-tflops "$peak")
 
-section "reference: dense fp32, V=6890" 70 "${bench[@]}" --impl dense-fp32 --batch 1 2 --steps 5
+section "reference: dense fp32 and TF32, V=6890" 120 "${bench[@]}" --impl dense-fp32 dense-tf32 --batch 1 2 --steps 5
 section "ours eager, cuDNN attention preferred" 45 "${bench[@]}" --impl ours --batch 16 --steps 5 \
   --attention-kernels cudnn flash efficient
 section "ours eager, torch's kernel preference" 45 "${bench[@]}" --impl ours --batch 16 --steps 5

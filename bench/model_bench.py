@@ -2,6 +2,9 @@
 
 The reference is the same layer plan run the way the paper's code runs it: fp32 and attention
 that materialises the V x V map (PyTorch's math SDPA kernel computes softmax(q k^T) explicitly).
+dense-tf32 is that reference with every matmul on TF32 tensor cores
+(`torch.set_float32_matmul_precision("high")`). The paper's code on an Ampere or newer GPU gets TF32 in
+its Conv1d layers (PyTorch's default), not in its bmm attention, so this bounds its speed from above.
 Ours: `F.scaled_dot_product_attention` with its fused kernels, bf16 autocast on GPUs with bf16;
 ours-compiled: the same through `torch.compile` (`--compile-mode reduce-overhead` adds CUDA graphs).
 `--activation-checkpointing` and `--attention-kernels cudnn flash efficient` apply to both. The
@@ -38,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from aniformer import AniFormer, AniFormerConfig  # noqa: E402
 from aniformer.model import ATTENTION_KERNELS, attention_kernels  # noqa: E402
 
-IMPLEMENTATIONS = ("ours", "ours-compiled", "dense-fp32")
+IMPLEMENTATIONS = ("ours", "ours-compiled", "dense-fp32", "dense-tf32")
 
 
 def open_gates(model: AniFormer) -> None:
@@ -79,7 +82,8 @@ def measure(impl: str, device: str, vertices: int, window: int, batch: int, step
     optimizer = torch.optim.Adam(model.parameters(), lr=5e-5)
     driving = torch.randn(batch, window, vertices, 3, device=device) * 0.3
     target = torch.randn(batch, vertices, 3, device=device) * 0.3
-    ours = impl != "dense-fp32"
+    ours = impl.startswith("ours")
+    precision = torch.get_float32_matmul_precision()
     use_bf16 = ours and device == "cuda" and torch.cuda.is_bf16_supported()
     autocast = torch.autocast("cuda", torch.bfloat16, enabled=use_bf16)
     initial = {k: v.clone() for k, v in model.state_dict().items()}  # for the numerics check after the timing
@@ -90,6 +94,8 @@ def measure(impl: str, device: str, vertices: int, window: int, batch: int, step
             run = torch.compile(model, mode=compile_mode)
     else:
         kernels = ("math",)  # the V x V map in fp32, as the paper's code
+        if impl == "dense-tf32":
+            torch.set_float32_matmul_precision("high")  # undone before returning
 
     def sync():
         if device == "cuda":
@@ -131,15 +137,20 @@ def measure(impl: str, device: str, vertices: int, window: int, batch: int, step
     else:  # the process high-water mark above what model + inputs already held
         peak_gib = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before) / 2**20
     flops = model.forward_flops(vertices)
+    ops, top_kernels, kernel_ms = profile_step(train_step, device)
     # Numerics: this implementation's forward against the exact fp32 forward, same initial weights.
+    torch.set_float32_matmul_precision("highest")
     model.load_state_dict(initial)
     with torch.no_grad(), attention_kernels(["efficient", "math"]):
         reference = model(driving[:1], target[:1]).float()
+    if impl == "dense-tf32":
+        torch.set_float32_matmul_precision("high")
     error = ((forward().float() - reference).norm() / reference.norm()).item()
-    ops, top_kernels, kernel_ms = profile_step(train_step, device)
+    torch.set_float32_matmul_precision(precision)
+    dtype = "bf16" if use_bf16 else "tf32" if impl == "dense-tf32" and device == "cuda" else "fp32"
     return dict(impl=impl, device=device, vertices=vertices, window=window, batch=batch,
                 forward_ms=forward_s * 1e3, step_ms_per_sample=step_s * 1e3 / batch, peak_gib=peak_gib,
-                dtype="bf16" if use_bf16 else "fp32", relative_error=error, forward_tflops=flops / forward_s / 1e12,
+                dtype=dtype, relative_error=error, forward_tflops=flops / forward_s / 1e12,
                 train_tflops=3 * flops * batch / step_s / 1e12, attention=ops,
                 warmup_s=warmup_s, top_kernels=top_kernels, kernel_ms=kernel_ms)
 

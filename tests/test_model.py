@@ -277,4 +277,7 @@ def test_model_bench_reports_the_kernel_really_run_and_the_error(repo_root):
     assert 0 < ours["relative_error"] < 1e-5  # the same fp32 maths through another kernel
     reference = measure("dense-fp32", "cpu", vertices=48, window=3, batch=2, steps=1, threads=1)
     assert reference["attention"] == "attention_math" and reference["relative_error"] == 0
+    tf32 = measure("dense-tf32", "cpu", vertices=48, window=3, batch=2, steps=1, threads=1)
+    assert tf32["attention"] == "attention_math" and tf32["dtype"] == "fp32"  # TF32 exists on CUDA only
+    assert torch.get_float32_matmul_precision() == "highest"  # restored for the rest of the process
     assert ours["forward_tflops"] > 0 and ours["step_ms_per_sample"] > 0
