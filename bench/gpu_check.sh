@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# The GPU rows of docs/benchmarks.md in one run of under 10 minutes on one H100/H200 (issue 8; the
-# 2026-11-26 H100 run took ~8 minutes with every section finished):
+# The GPU rows of docs/benchmarks.md in one run of about 10 minutes on one H100/H200 (issue 8; the
+# 2026-11-26 H100 run of a shorter first version took 6 minutes). The last section gets what is left
+# of SECONDS (default 580): give more where the lease allows.
 #   1. the dense fp32 reference at V = 6,890, T = 3, B = 1 and 2, also with TF32 matmuls (bench/model_bench.py);
-#   2. ours eager at B = 16: cuDNN attention preferred, torch's default preference (flash), and
+#   2. ours eager at B = 16: cuDNN attention preferred, torch's own preference, and
 #      activation checkpointing (memory per sample);
 #   3. ours compiled at B = 16 with the faster of the two kernel preferences;
 #   4. full resolution (Anny `notoes`, 12,272 v) with activation checkpointing: T = 3 at batch 8
