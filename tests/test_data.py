@@ -374,17 +374,6 @@ def run_job(*args, env=None) -> subprocess.CompletedProcess:
     )
 
 
-@pytest.fixture(scope="module")
-def generate_job_main():
-    """jobs/generate_data.py's `main`, loaded once, to run in this process (a subprocess costs ~4 s of imports)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("generate_job", ROOT / "jobs" / "generate_data.py")
-    job = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(job)
-    return job.main
-
-
 @pytest.mark.parametrize(
     "args, words",
     [
@@ -396,11 +385,11 @@ def generate_job_main():
         (["--config"], "--config"),
     ],
 )
-def test_job_bad_input_exits_2_with_one_line(tmp_path, capsys, generate_job_main, args, words):
+def test_job_bad_input_exits_2_with_one_line(tmp_path, capsys, job_main, args, words):
     from aniformer.cli import run
 
     with pytest.raises(SystemExit) as exit_:
-        run(generate_job_main, [*map(str, args), "--out", str(tmp_path / "out")])
+        run(job_main("generate_data"), [*map(str, args), "--out", str(tmp_path / "out")])
     stderr = capsys.readouterr().err
     assert exit_.value.code == 2 and stderr.strip().count("\n") == 0 and words in stderr, stderr
     assert not (tmp_path / "out").exists()

@@ -171,24 +171,12 @@ BAD_OVERRIDES = [("train.epochs=0", "epochs must be >= 1"),
                  ("train.attention_kernels=[flash,turbo]", "attention_kernels: unknown ['turbo']")]
 
 
-@pytest.fixture(scope="module")
-def train_job_main(repo_root):
-    """jobs/train.py's `main`, loaded once, to run in this process (a subprocess costs ~8 s of imports)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("train_job", repo_root / "jobs/train.py")
-    job = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(job)
-    return job.main
-
-
 @pytest.mark.parametrize(("override", "message"), BAD_OVERRIDES, ids=[o for o, _ in BAD_OVERRIDES])
-def test_bad_config_fails_with_one_line_before_starting_ray(tmp_path, repo_root, capsys, train_job_main, override,
-                                                            message):
+def test_bad_config_fails_with_one_line_before_starting_ray(tmp_path, repo_root, capsys, job_main, override, message):
     from aniformer.cli import run
 
     with pytest.raises(SystemExit) as exit_:
-        run(train_job_main, ["--config", str(repo_root / "configs/tiny.yaml"), "--out", str(tmp_path / "x"), override])
+        run(job_main("train"), ["--config", str(repo_root / "configs/tiny.yaml"), "--out", str(tmp_path / "x"), override])
     stderr = capsys.readouterr().err
     assert exit_.value.code == 2 and stderr.strip().count("\n") == 0 and message in stderr, stderr
     assert not (tmp_path / "x").exists()
