@@ -33,6 +33,7 @@ import resource
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -51,6 +52,17 @@ def open_gates(model: AniFormer) -> None:
         for name, p in model.named_parameters():
             if name.endswith("gamma"):
                 p.fill_(0.5)
+
+
+@contextmanager
+def float32_matmul_precision(level: str):
+    """torch.set_float32_matmul_precision(level) inside the block only ("high": TF32 on CUDA)."""
+    previous = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision(level)
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(previous)
 
 
 def profile_step(fn, device: str) -> tuple[str, list[tuple[str, float]], float]:
@@ -83,7 +95,7 @@ def measure(impl: str, device: str, vertices: int, window: int, batch: int, step
     driving = torch.randn(batch, window, vertices, 3, device=device) * 0.3
     target = torch.randn(batch, vertices, 3, device=device) * 0.3
     ours = impl.startswith("ours")
-    precision = torch.get_float32_matmul_precision()
+    matmul = "high" if impl == "dense-tf32" else torch.get_float32_matmul_precision()
     use_bf16 = ours and device == "cuda" and torch.cuda.is_bf16_supported()
     autocast = torch.autocast("cuda", torch.bfloat16, enabled=use_bf16)
     initial = {k: v.clone() for k, v in model.state_dict().items()}  # for the numerics check after the timing
@@ -94,22 +106,21 @@ def measure(impl: str, device: str, vertices: int, window: int, batch: int, step
             run = torch.compile(model, mode=compile_mode)
     else:
         kernels = ("math",)  # the V x V map in fp32, as the paper's code
-        if impl == "dense-tf32":
-            torch.set_float32_matmul_precision("high")  # undone before returning
 
     def sync():
         if device == "cuda":
             torch.cuda.synchronize()
 
     def forward():
-        with torch.no_grad(), autocast, attention_kernels(kernels):
+        with torch.no_grad(), autocast, attention_kernels(kernels), float32_matmul_precision(matmul):
             return run(driving[:1], target[:1])
 
     def train_step():
-        with autocast, attention_kernels(kernels):
-            loss = (run(driving, target) - driving).square().mean()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        with float32_matmul_precision(matmul):  # backward too: outside autocast, as torch recommends
+            with autocast, attention_kernels(kernels):
+                loss = (run(driving, target) - driving).square().mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
         optimizer.step()
 
     warmup_s = 0.0
@@ -139,14 +150,10 @@ def measure(impl: str, device: str, vertices: int, window: int, batch: int, step
     flops = model.forward_flops(vertices)
     ops, top_kernels, kernel_ms = profile_step(train_step, device)
     # Numerics: this implementation's forward against the exact fp32 forward, same initial weights.
-    torch.set_float32_matmul_precision("highest")
     model.load_state_dict(initial)
-    with torch.no_grad(), attention_kernels(["efficient", "math"]):
+    with torch.no_grad(), attention_kernels(["efficient", "math"]), float32_matmul_precision("highest"):
         reference = model(driving[:1], target[:1]).float()
-    if impl == "dense-tf32":
-        torch.set_float32_matmul_precision("high")
     error = ((forward().float() - reference).norm() / reference.norm()).item()
-    torch.set_float32_matmul_precision(precision)
     dtype = "bf16" if use_bf16 else "tf32" if impl == "dense-tf32" and device == "cuda" else "fp32"
     return dict(impl=impl, device=device, vertices=vertices, window=window, batch=batch,
                 forward_ms=forward_s * 1e3, step_ms_per_sample=step_s * 1e3 / batch, peak_gib=peak_gib,
