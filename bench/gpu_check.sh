@@ -52,7 +52,8 @@ section environment 30 bash -c 'nvidia-smi --query-gpu=name,memory.total,driver_
   python3 -c "import torch; print(torch.__version__, torch.version.cuda, torch.backends.cudnn.version(), torch.cuda.get_device_name(), torch.cuda.get_device_capability())"'
 # Dense bf16 peak of the card, for MFU (H100/H200 SXM: 989 TFLOP/s; A100: 312; V100: 125 in fp16).
 peak=$(python3 -c "import torch; n=torch.cuda.get_device_name(); print(989 if ('H100' in n or 'H200' in n) else 312 if 'A100' in n else 125)")
-bench=(python3 bench/model_bench.py --device cuda --vertices 6890 --peak-tflops "$peak")
+model_bench=(python3 bench/model_bench.py --device cuda --peak-tflops "$peak")
+bench=("${model_bench[@]}" --vertices 6890)
 
 section "reference: dense fp32 and TF32, V=6890" 120 "${bench[@]}" --impl dense-fp32 dense-tf32 --batch 1 2 --steps 5
 section "ours eager, cuDNN attention preferred" 45 "${bench[@]}" --impl ours --batch 16 --steps 5 \
@@ -72,14 +73,14 @@ section "ours eager, activation checkpointing" 45 "${bench[@]}" --impl ours --ba
   --activation-checkpointing "${kernels[@]}"
 section "ours compiled" 200 "${bench[@]}" --impl ours-compiled --batch 16 "${kernels[@]}"
 section "full resolution, eager, activation checkpointing" 80 \
-  python3 bench/model_bench.py --device cuda --vertices 12272 --window 3 --batch 8 --steps 3 --impl ours \
-  --activation-checkpointing --peak-tflops "$peak" "${kernels[@]}"
+  "${model_bench[@]}" --vertices 12272 --window 3 --batch 8 --steps 3 --impl ours \
+  --activation-checkpointing "${kernels[@]}"
 section "full resolution, compiled, activation checkpointing" 120 \
-  python3 bench/model_bench.py --device cuda --vertices 12272 --window 3 --batch 8 --steps 3 --impl ours-compiled \
-  --activation-checkpointing --peak-tflops "$peak" "${kernels[@]}"
+  "${model_bench[@]}" --vertices 12272 --window 3 --batch 8 --steps 3 --impl ours-compiled \
+  --activation-checkpointing "${kernels[@]}"
 section "full resolution T=8, eager, activation checkpointing" 60 \
-  python3 bench/model_bench.py --device cuda --vertices 12272 --window 8 --batch 8 --steps 3 --impl ours \
-  --activation-checkpointing --peak-tflops "$peak" "${kernels[@]}"
+  "${model_bench[@]}" --vertices 12272 --window 8 --batch 8 --steps 3 --impl ours \
+  --activation-checkpointing "${kernels[@]}"
 section "memory model vs max_memory_allocated" 110 python3 bench/memory_calibration.py --device cuda --steps 2
 section "ours compiled, activation checkpointing" $((budget - SECONDS)) "${bench[@]}" --impl ours-compiled \
   --batch 16 --activation-checkpointing "${kernels[@]}"

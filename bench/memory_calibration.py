@@ -185,10 +185,10 @@ def main(argv: list[str]) -> None:
     if args.child:
         print(json.dumps(child(json.loads(args.child))))
         return
-    grid = GRIDS[args.grid or ("gpu" if args.device.startswith("cuda") else "cpu")]
-    kind = "max_memory_allocated" if args.device.startswith("cuda") else (
-        "peak RSS - baseline" + (", mmap threshold fixed" if args.mmap else ", default malloc"))
     cuda = args.device.startswith("cuda")
+    grid = GRIDS[args.grid or ("gpu" if cuda else "cpu")]
+    kind = "max_memory_allocated" if cuda else (
+        "peak RSS - baseline" + (", mmap threshold fixed" if args.mmap else ", default malloc"))
     reserved = " max_memory_reserved (MiB) |" if cuda else ""
     print(f"| config | V | T | B | precision | predicted (MiB) | measured: {kind} (MiB) | error |{reserved} s/step |")
     print("|---|---|---|---|---|---|---|---|---|" + ("---|" if cuda else ""))
