@@ -6,7 +6,8 @@
     python bench/render_animation.py samples/unseen anim/unseen docs/animate_unseen.png
 
 Rows: driver, target, result, ground truth at 8 evenly spaced frames, each mesh bounding-box
-centred; prints the sequence's PMD (x1e-4) of result vs ground truth.
+centred; prints the sequence's PMD (x1e-4) of result vs ground truth, against copying the driver
+(driver vs ground truth), and the heights (z extent, first frame) of target, driver and result.
 """
 
 import json
@@ -34,8 +35,14 @@ def main(samples: str, animation: str, png: str) -> None:
     motion = json.loads((samples / "export.json").read_text())["motion"]["name"]
     render_filmstrip([(label, center_bbox(v), f) for label, v, f in rows], png, frames=len(shown),
                      title=f"{motion}: driver / target / result / ground truth (frames {', '.join(map(str, shown))})")
-    error = pmd(torch.from_numpy(center_bbox(result)), torch.from_numpy(center_bbox(truth))).item() * PMD_SCALE
-    print(f"{png}: PMD {error:.2f} x1e-4 over {len(driving)} frames")
+    def error(meshes: np.ndarray) -> float:
+        return pmd(torch.from_numpy(center_bbox(meshes)), torch.from_numpy(center_bbox(truth))).item() * PMD_SCALE
+
+    def height(vertices: np.ndarray) -> float:
+        return float(np.ptp(vertices[..., 2]))
+
+    print(f"{png}: PMD {error(result):.2f} x1e-4 over {len(driving)} frames (copy-driver {error(driving):.2f}); "
+          f"height target {height(target):.2f} m, driver {height(driving[0]):.2f} m, result {height(result[0]):.2f} m")
 
 
 if __name__ == "__main__":
