@@ -40,7 +40,15 @@ def main(argv: list[str]) -> None:
     from pipeline.cluster import connect
     from pipeline.data import prepare_bank
     from pipeline.tracking import Tracker, start_job_run, tracking_uri, ui_hint
-    from pipeline.tune import best_row, build_tuner, experiment_exists, summarize, unfinished_trials, write_summary
+    from pipeline.tune import (
+        best_row,
+        build_tuner,
+        end_interrupted_runs,
+        experiment_exists,
+        summarize,
+        unfinished_trials,
+        write_summary,
+    )
 
     connect()
     manifest, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
@@ -60,11 +68,7 @@ def main(argv: list[str]) -> None:
         rows = summarize(results, sweep, spec.train.epochs)
         summary = write_summary(rows, out / "summary.csv")
         parent.log_artifact(summary)
-        for row in rows:  # an interrupted trial's child run: KILLED (resumed by the next run)
-            if row["trial_id"] in unfinished and row["mlflow_run_id"]:
-                child = Tracker(tracking_uri(), row["mlflow_run_id"])
-                child.set_tags({"status": "interrupted"})
-                child.end("KILLED")
+        end_interrupted_runs(name, unfinished, args.experiment)
         best = best_row(rows)
         if best and not unfinished:
             Tracker(tracking_uri(), best["mlflow_run_id"]).set_tags({"best": "true"})

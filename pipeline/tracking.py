@@ -104,15 +104,28 @@ def experiment_id(client: MlflowClient, name: str, uri: str) -> str:
     return client.create_experiment(name, artifact_location=_artifact_location(uri))
 
 
+def _job_run_id(client: MlflowClient, exp_id: str, job: str) -> str | None:
+    existing = client.search_runs([exp_id], filter_string=f"tags.`{JOB_TAG}` = '{job}'", max_results=1)
+    return existing[0].info.run_id if existing else None
+
+
+def find_job_run(job: str, experiment: str = DEFAULT_EXPERIMENT) -> Tracker | None:
+    """The MLflow run of job `job` if one was started, else None."""
+    uri = tracking_uri()
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name(experiment)
+    run_id = _job_run_id(client, exp.experiment_id, job) if exp is not None else None
+    return Tracker(uri, run_id) if run_id else None
+
+
 def start_job_run(job: str, config: Mapping, experiment: str = DEFAULT_EXPERIMENT,
                   parent_run_id: str | None = None) -> Tracker:
     """The MLflow run of job `job`: the existing one if the job ran before (resume), else a new one."""
     uri = tracking_uri()
     client = MlflowClient(uri)
     exp_id = experiment_id(client, experiment, uri)
-    existing = client.search_runs([exp_id], filter_string=f"tags.`{JOB_TAG}` = '{job}'", max_results=1)
-    if existing:
-        run_id = existing[0].info.run_id
+    run_id = _job_run_id(client, exp_id, job)
+    if run_id:
         client.update_run(run_id, status=RunStatus.to_string(RunStatus.RUNNING))
         return Tracker(uri, run_id)
     tags = {JOB_TAG: job}

@@ -38,7 +38,7 @@ from ray.tune.integration.ray_train import TuneReportCallback
 
 from aniformer.cli import UserError, from_dict
 from aniformer.memory import plan_batch
-from pipeline.tracking import Tracker, tracking_uri
+from pipeline.tracking import Tracker, find_job_run, tracking_uri
 
 STATUSES = ("ok", "adjusted_memory", "skipped_memory", "early_stopped", "failed")
 SEARCHES = ("optuna", "random")
@@ -439,3 +439,14 @@ def unfinished_trials(experiment: Path, num_samples: int) -> list[str]:
     trials = ExperimentAnalysis(str(experiment)).trials
     left = [t.trial_id for t in trials if t.status not in ("TERMINATED", "ERROR")]
     return left + ["(not created)"] * max(0, num_samples - len(trials))
+
+
+def end_interrupted_runs(sweep_name: str, unfinished: list[str], experiment: str) -> None:
+    """End the MLflow child run of each unfinished trial as KILLED, tagged `status=interrupted`; the
+    restored sweep reopens it. Found by job name, not from the trial's results: a trial stopped
+    before its first epoch report has a run but no run id in any result."""
+    for trial_id in unfinished:
+        run = find_job_run(f"{sweep_name}-{trial_id}", experiment)
+        if run is not None:
+            run.set_tags({"status": "interrupted"})
+            run.end("KILLED")

@@ -85,6 +85,24 @@ def test_trial_status():
     assert trial_status({}, None, 2) == "failed"
 
 
+def test_interrupted_trials_runs_are_ended_even_before_their_first_report(tmp_path, monkeypatch):
+    """A trial interrupted before its first epoch report has an MLflow run but no run id in any
+    Tune result: its run is found by job name and ended, never left RUNNING."""
+    from pipeline.tracking import start_job_run
+    from pipeline.tune import end_interrupted_runs
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    parent = start_job_run("sw", {})
+    started = start_job_run("sw-a0001", {}, parent_run_id=parent.run_id)  # no epoch reported yet
+    finished = start_job_run("sw-a0002", {}, parent_run_id=parent.run_id)
+    finished.end("FINISHED")
+    end_interrupted_runs("sw", ["a0001", "(not created)"], "aniformer")
+    run = started.client.get_run(started.run_id)
+    assert run.info.status == "KILLED" and run.data.tags["status"] == "interrupted"
+    assert finished.client.get_run(finished.run_id).info.status == "FINISHED"
+    assert start_job_run("sw-a0001", {}).run_id == started.run_id  # the restored trial reopens it
+
+
 # ---------------------------------------------------------------- end to end on the Ray cluster
 
 SWEEP = ["sweep.num_samples=3", "sweep.max_concurrent=1", "sweep.search=optuna", "sweep.seed=1",
