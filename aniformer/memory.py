@@ -215,7 +215,7 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
             stages.append((_resblock(m2, c, S * V2 * c, mixed), _kept(m2 * c)))
         out_frames = T
     elif model_name == "aniformer":
-        cf, heads = ext[-1], config.heads
+        cf = ext[-1]
         m1, m2 = B * T * V1, B * T * V2
         stages.append((_extractor(m1, ext), _Ledger()))  # output not kept: an add / concat takes it
         ledger.add(m1 * cf)  # features + temporal embedding (eq. 1), saved by the first proj / to_kv
@@ -226,7 +226,7 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
         elif config.pool_driving or V1 != V2:
             ledger.add(m1 * cf, fp32=True)  # amax saves its input
             ledger.add(m2 * cf)  # the broadcast code, materialised for the first proj
-        for c in config.channels:
+        for c, heads in zip(config.channels, config.stage_heads()):
             mix = _Ledger()  # EncoderStage.mix: width change and attention
             mix.add(m2 * c)  # proj out
             mix.add(m2 * c)  # q

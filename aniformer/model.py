@@ -62,7 +62,7 @@ class AniFormerConfig:
 
     channels: tuple[int, ...] = (1024, 512, 512, 256)
     extractor_channels: tuple[int, ...] = (64, 128, 1024)
-    heads: int = 8
+    heads: int | tuple[int, ...] = 8  # one count for every stage, or one per stage
     window: int = 3
     attention: str = "self"
     temporal: str = "embedding"
@@ -72,6 +72,8 @@ class AniFormerConfig:
     def __post_init__(self):
         object.__setattr__(self, "channels", tuple(self.channels))
         object.__setattr__(self, "extractor_channels", tuple(self.extractor_channels))
+        if isinstance(self.heads, list):
+            object.__setattr__(self, "heads", tuple(self.heads))
         if self.attention not in ATTENTIONS:
             raise ValueError(f"attention must be one of {ATTENTIONS}, got {self.attention!r}")
         if self.temporal not in TEMPORALS:
@@ -82,9 +84,18 @@ class AniFormerConfig:
             raise ValueError("channels and extractor_channels must not be empty")
         if self.window < 1:
             raise ValueError(f"window must be >= 1, got {self.window}")
-        bad = [c for c in self.channels if c % self.heads]
-        if bad:
-            raise ValueError(f"every channel count must be divisible by heads={self.heads}, got {bad}")
+        if not all(isinstance(h, int) for h in self.stage_heads()):
+            raise ValueError(f"heads must be an integer or a list of integers, got {self.heads!r}")
+        if isinstance(self.heads, tuple) and len(self.heads) != len(self.channels):
+            raise ValueError(f"heads needs one count per stage ({len(self.channels)}), got {list(self.heads)}")
+        if any(h < 1 or c % h for c, h in zip(self.channels, self.stage_heads())):
+            raise ValueError(f"every stage's channel count must be divisible by its heads: channels "
+                             f"{list(self.channels)}, heads {list(self.stage_heads())}")
+
+    def stage_heads(self) -> tuple[int, ...]:
+        """The attention heads of each encoder stage. The fused attention kernels run fastest at head
+        dim 128 (docs/benchmarks.md): heads = channels / 128, e.g. (8, 4, 4, 2) for the paper's widths."""
+        return self.heads if isinstance(self.heads, tuple) else (self.heads,) * len(self.channels)
 
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
@@ -203,11 +214,11 @@ class TemporalAttention(nn.Module):
 class EncoderStage(nn.Module):
     """Table 6 `conv -> AniFormer encoder`: width change, attention, then the target-modulated block."""
 
-    def __init__(self, in_dim: int, dim: int, config: AniFormerConfig, memory_dim: int):
+    def __init__(self, in_dim: int, dim: int, heads: int, config: AniFormerConfig, memory_dim: int):
         super().__init__()
         self.proj = nn.Linear(in_dim, dim)
-        self.attention = VertexAttention(dim, config.heads, memory_dim if config.attention == "cross" else None)
-        self.temporal = TemporalAttention(dim, config.heads) if config.temporal == "attention" else None
+        self.attention = VertexAttention(dim, heads, memory_dim if config.attention == "cross" else None)
+        self.temporal = TemporalAttention(dim, heads) if config.temporal == "attention" else None
         self.block = SPAdaINResBlock(dim)
 
     def mix(self, x: torch.Tensor, memory: torch.Tensor | None) -> torch.Tensor:
@@ -235,7 +246,8 @@ class AniFormer(nn.Module):
         nn.init.trunc_normal_(self.temporal_embedding, std=0.02)
         widths = (feature_dim, *config.channels)
         self.stages = nn.ModuleList(
-            EncoderStage(a, b, config, feature_dim) for a, b in zip(widths[:-1], widths[1:])
+            EncoderStage(a, b, h, config, feature_dim)
+            for a, b, h in zip(widths[:-1], widths[1:], config.stage_heads())
         )
         last = config.channels[-1]
         if config.head == "regression":

@@ -85,11 +85,11 @@ def profile_step(fn, device: str) -> tuple[str, list[tuple[str, float]], float]:
 
 def measure(impl: str, device: str, vertices: int, window: int, batch: int, steps: int, threads: int,
             compile_mode: str = "default", activation_checkpointing: bool = False,
-            kernels: tuple[str, ...] = ()) -> dict:
+            kernels: tuple[str, ...] = (), heads: int | tuple[int, ...] = 8) -> dict:
     torch.manual_seed(0)
     if device == "cpu":
         torch.set_num_threads(threads)
-    model = AniFormer(AniFormerConfig(window=window)).to(device)
+    model = AniFormer(AniFormerConfig(window=window, heads=heads)).to(device)
     open_gates(model)
     optimizer = torch.optim.Adam(model.parameters(), lr=5e-5)
     driving = torch.randn(batch, window, vertices, 3, device=device) * 0.3
@@ -176,16 +176,25 @@ def main() -> None:
     parser.add_argument("--activation-checkpointing", action="store_true", help="ours*: rerun each stage in backward")
     parser.add_argument("--attention-kernels", nargs="*", default=[], choices=sorted(ATTENTION_KERNELS),
                         help="ours*: SDPA kernels allowed, by preference (default: torch's choice)")
+    parser.add_argument("--heads", type=int, nargs="+", default=[8],
+                        help="attention heads, one count or one per stage (8 4 4 2: head dim 128 everywhere)")
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # child process: one measurement
     args = parser.parse_args()
+    heads = args.heads[0] if len(args.heads) == 1 else tuple(args.heads)
+    try:
+        AniFormerConfig(heads=heads)
+    except ValueError as e:
+        parser.error(str(e))
     if args.one:
         print(json.dumps(measure(args.impl[0], args.device, args.vertices[0], args.window, args.batch[0],
                                  args.steps, args.threads, args.compile_mode, args.activation_checkpointing,
-                                 tuple(args.attention_kernels))))
+                                 tuple(args.attention_kernels), heads)))
         return
-    options = ["--compile-mode", args.compile_mode, "--attention-kernels", *args.attention_kernels]
+    options = ["--compile-mode", args.compile_mode, "--attention-kernels", *args.attention_kernels,
+               "--heads", *map(str, args.heads)]
     if args.activation_checkpointing:
         options.append("--activation-checkpointing")
+    print(f"Paper layer plan, heads per stage: {' '.join(map(str, args.heads))}\n")
     print("| impl | device | dtype | V | T | batch | forward B=1 (ms) | train step / sample (ms) | peak (GiB) "
           "| forward TFLOP/s | train TFLOP/s | train MFU | error vs fp32 | attention op (train step) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")

@@ -54,6 +54,7 @@ def saved_activation_bytes(name: str, config: dict, B: int, V1: int, V2: int, pr
     ("aniformer", dict(TINY, window=3, attention="cross"), 2, 400, 300),
     ("aniformer", dict(TINY, window=3), 2, 400, 300),  # self-attention with V1 != V2: pooled driver
     ("aniformer", dict(TINY, window=3, temporal="attention"), 2, 400, 400),
+    ("aniformer", dict(TINY, window=3, temporal="attention", heads=[8, 2]), 2, 400, 400),  # per-stage heads
     ("aniformer", dict(TINY, window=3, head="regression"), 2, 400, 400),
     ("aniformer", dict(channels=[256, 128], extractor_channels=[64, 128, 256], window=3), 1, 300, 300),
     ("npt", dict(channels=[65, 33], extractor_channels=[16, 64], window=3), 2, 400, 400),

@@ -41,10 +41,32 @@ def test_paper_defaults_and_api_as_documented():
 
 
 @pytest.mark.parametrize("bad", [dict(attention="both"), dict(temporal="rnn"), dict(head="mlp"),
-                                 dict(channels=(30,), heads=8), dict(window=0)])
+                                 dict(channels=(30,), heads=8), dict(window=0), dict(heads=(4,)),
+                                 dict(heads=(4, 3)), dict(heads=(4, 0)), dict(heads=2.0), dict(heads="4")])
 def test_config_rejects_bad_values(bad):
     with pytest.raises(ValueError):
         AniFormerConfig(**{**TINY, **bad})
+
+
+def test_per_stage_heads_set_each_stages_head_dim():
+    """heads = channels / 128 keeps head dim 128 in every stage of the paper's plan; a list gives each
+    stage its own count, in the config, its YAML/JSON form, the modules and the memory model."""
+    from aniformer.memory import count_activations
+
+    paper = AniFormerConfig(heads=[8, 4, 4, 2])
+    assert paper.heads == (8, 4, 4, 2) and paper.to_dict()["heads"] == [8, 4, 4, 2]
+    assert AniFormerConfig(**yaml.safe_load(yaml.safe_dump(paper.to_dict()))) == paper
+    assert [c // h for c, h in zip(paper.channels, paper.stage_heads())] == [128] * 4
+    assert AniFormerConfig(heads=8).stage_heads() == (8,) * 4
+    cfg = AniFormerConfig(**{**TINY, "heads": [4, 2], "temporal": "attention"})
+    model = AniFormer(cfg)
+    assert [(s.attention.heads, s.temporal.heads) for s in model.stages] == [(4, 4), (2, 2)]
+    assert model(torch.randn(1, 3, 20, 3), torch.randn(1, 20, 3)).shape == (1, 3, 20, 3)
+    # same FLOPs (the head count splits the same matmuls), fewer log-sum-exp rows to keep
+    same = AniFormerConfig(**{**TINY, "temporal": "attention"})
+    assert model.forward_flops(20) == AniFormer(same).forward_flops(20)
+    fewer, _ = count_activations("aniformer", cfg, 2, (600, 600))
+    assert fewer < count_activations("aniformer", same, 2, (600, 600))[0]
 
 
 @pytest.mark.parametrize("switch", SWITCHES, ids=lambda s: "-".join(f"{k}={v}" for k, v in s.items()) or "paper")
@@ -272,7 +294,8 @@ def test_model_bench_reports_the_kernel_really_run_and_the_error(repo_root):
     sys.path.insert(0, str(repo_root / "bench"))
     from model_bench import measure
 
-    ours = measure("ours", "cpu", vertices=48, window=3, batch=2, steps=1, threads=1, activation_checkpointing=True)
+    ours = measure("ours", "cpu", vertices=48, window=3, batch=2, steps=1, threads=1, activation_checkpointing=True,
+                   heads=(8, 4, 4, 2))  # head dim 128 in every stage
     assert "flash_attention_for_cpu" in ours["attention"] and "math" not in ours["attention"]
     assert 0 < ours["relative_error"] < 1e-5  # the same fp32 maths through another kernel
     reference = measure("dense-fp32", "cpu", vertices=48, window=3, batch=2, steps=1, threads=1)
