@@ -60,6 +60,18 @@ def test_shipped_seeds_config_repeats_the_default_and_varies_only_the_seed():
     assert specs["paper design s0"].model.temporal == "embedding" and specs["NPT s0"].model_name == "npt"
 
 
+def test_shipped_head_dim_config_varies_only_the_heads_and_the_seed():
+    from pipeline.ablation import load_ablation_config, variant_specs
+
+    specs = variant_specs(*load_ablation_config(ROOT / "configs/head_dim.yaml"))
+    assert {name: spec.model.stage_heads() for name, spec in specs.items()} == {
+        **{f"2 heads s{seed}": (2, 2) for seed in range(3)}, **{f"head dim 32 s{seed}": (2, 1) for seed in range(3)}}
+    base = specs["2 heads s0"].to_dict()
+    for name, spec in specs.items():
+        run = spec.to_dict()
+        assert {**run, "model": {**run["model"], "heads": 2}, "train": {**run["train"], "seed": 0}} == base, name
+
+
 def test_bad_ablation_configs_fail_with_one_line(tmp_path):
     from pipeline.ablation import load_ablation_config, variant_specs
 
