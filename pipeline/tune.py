@@ -38,7 +38,7 @@ from ray.tune.integration.ray_train import TuneReportCallback
 
 from aniformer.cli import UserError, from_dict
 from aniformer.memory import plan_batch
-from pipeline.tracking import Tracker, find_job_run, tracking_uri
+from pipeline.tracking import find_job_run, tracking_uri
 
 STATUSES = ("ok", "adjusted_memory", "skipped_memory", "early_stopped", "failed")
 SEARCHES = ("optuna", "random")
@@ -299,10 +299,11 @@ MLFLOW_STATUS = {"ok": "FINISHED", "adjusted_memory": "FINISHED", "early_stopped
 
 class SweepRuns(Callback):
     """Driver-side: end each trial's MLflow child run with its final status as the trial ends
-    (also ASHA-stopped trials, whose trainable is stopped before it could do so itself)."""
+    (also ASHA-stopped trials, whose trainable is stopped before it could do so itself). The run is
+    found by job name, so a trial that failed before its first report is ended too."""
 
-    def __init__(self, epochs: int, sweep_name: str, trials_dir: str):
-        self.epochs, self.sweep_name, self.trials_dir = epochs, sweep_name, trials_dir
+    def __init__(self, epochs: int, sweep_name: str, trials_dir: str, experiment: str):
+        self.epochs, self.sweep_name, self.trials_dir, self.experiment = epochs, sweep_name, trials_dir, experiment
 
     def _end(self, trial, error) -> None:
         try:  # a callback that raises would fail the trial: report and go on
@@ -312,17 +313,16 @@ class SweepRuns(Callback):
 
     def _release_and_end(self, trial, error) -> None:
         release_placement_group(Path(self.trials_dir) / f"{self.sweep_name}-{trial.trial_id}" / PLACEMENT_GROUP_FILE)
-        metrics = trial.last_result or {}
-        run_id = metrics.get("mlflow_run_id")
-        if not run_id:
+        run = find_job_run(f"{self.sweep_name}-{trial.trial_id}", self.experiment)
+        if run is None:  # stopped before its trainable opened the run
             return
+        metrics = trial.last_result or {}
         status = trial_status(metrics, error, self.epochs)
-        tracker = Tracker(tracking_uri(), run_id)
         tags = {"status": status}
         if "peak_memory_gb" in metrics:
             tags["measured_memory_gb"] = f"{metrics['peak_memory_gb']:.3f}"
-        tracker.set_tags(tags)
-        tracker.end(MLFLOW_STATUS[status])
+        run.set_tags(tags)
+        run.end(MLFLOW_STATUS[status])
 
     def on_trial_complete(self, iteration, trials, trial, **info):
         self._end(trial, None)
@@ -364,7 +364,7 @@ def build_tuner(base: dict, sweep: SweepConfig, *, sweep_name: str, out: Path, b
         tune_config=tune.TuneConfig(metric=sweep.metric, mode="min", search_alg=search, scheduler=scheduler,
                                     num_samples=sweep.num_samples, max_concurrent_trials=sweep.max_concurrent),
         run_config=tune.RunConfig(name=sweep_name, storage_path=str(out / "tune"),
-                                  callbacks=[SweepRuns(spec.train.epochs, sweep_name, str(out / "trials"))],
+                                  callbacks=[SweepRuns(spec.train.epochs, sweep_name, str(out / "trials"), experiment)],
                                   failure_config=tune.FailureConfig(max_failures=0)),
     )
 

@@ -103,6 +103,22 @@ def test_interrupted_trials_runs_are_ended_even_before_their_first_report(tmp_pa
     assert start_job_run("sw-a0001", {}).run_id == started.run_id  # the restored trial reopens it
 
 
+def test_a_trial_failing_before_its_first_report_ends_its_run_failed(tmp_path, monkeypatch):
+    """The driver callback finds a trial's run by job name, not from its (absent) results."""
+    from types import SimpleNamespace
+
+    from pipeline.tracking import start_job_run
+    from pipeline.tune import SweepRuns
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    run = start_job_run("sw-a0001", {})
+    callback = SweepRuns(epochs=2, sweep_name="sw", trials_dir=str(tmp_path / "trials"), experiment="aniformer")
+    callback.on_trial_error(0, [], SimpleNamespace(trial_id="a0001", last_result=None, error_file="error.txt"))
+    ended = run.client.get_run(run.run_id)
+    assert ended.info.status == "FAILED" and ended.data.tags["status"] == "failed"
+    callback.on_trial_error(0, [], SimpleNamespace(trial_id="a0002", last_result=None, error_file="error.txt"))  # no run
+
+
 # ---------------------------------------------------------------- end to end on the Ray cluster
 
 SWEEP = ["sweep.num_samples=3", "sweep.max_concurrent=1", "sweep.search=optuna", "sweep.seed=1",
