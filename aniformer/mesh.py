@@ -1,8 +1,10 @@
 """Triangle meshes in and out: trimesh for file formats, numpy arrays everywhere else.
 
 Vertices are `(V, 3)` float32 in metres (z up), faces `(F, 3)` int64. Files with quads or other
-polygons are triangulated on load (trimesh fans them); anything else that is not a usable
-triangle mesh is refused with a one-line `MeshError`.
+polygons are triangulated on load (fanned); anything else that is not a usable triangle mesh is
+refused with a one-line `MeshError`. OBJ files are read here, not by trimesh, because trimesh's
+OBJ loader drops vertices that no face references (even with ``process=False``): every ``v`` line
+is kept, in file order. Files in centimetres or millimetres are scaled to metres by ``unit``.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from aniformer.cli import UserError, atomic_path
 
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
 DEFAULT_MAX_VERTICES = 2_000_000
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per file unit
+MAX_COORDINATE = 1e3  # metres; beyond this a mesh is in another unit or broken (the model saturates)
 
 
 class MeshError(UserError):
@@ -34,6 +38,9 @@ def validate_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh",
         raise MeshError(f"{name}: {len(vertices):,} vertices exceeds the limit of {max_vertices:,}")
     if not np.isfinite(vertices).all():
         raise MeshError(f"{name}: vertex coordinates contain NaN or infinity")
+    peak = float(np.abs(vertices).max())
+    if peak > MAX_COORDINATE:
+        raise MeshError(f"{name}: a coordinate reaches {peak:.3g} m, beyond ±{MAX_COORDINATE:,.0f} m (wrong --unit?)")
     if faces.ndim != 2 or len(faces) == 0:
         raise MeshError(f"{name}: mesh has no faces")
     if faces.shape[1] != 3:
@@ -42,15 +49,29 @@ def validate_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh",
         raise MeshError(f"{name}: face index out of range [0, {len(vertices) - 1}]")
 
 
-def load_mesh(path: str | os.PathLike, max_vertices: int = DEFAULT_MAX_VERTICES) -> tuple[np.ndarray, np.ndarray]:
-    """Read a mesh file -> (vertices (V, 3) float32, faces (F, 3) int64), validated."""
-    path = Path(path)
-    if not path.is_file():
-        raise MeshError(f"{path}: no such file")
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise MeshError(f"{path}: unsupported mesh format (use one of {', '.join(MESH_SUFFIXES)})")
-    if path.stat().st_size == 0:
-        raise MeshError(f"{path}: file is empty")
+def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``v`` line of an OBJ in file order (referenced or not), and its faces fanned into triangles."""
+    vertices, faces = [], []
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for number, line in enumerate(f, 1):
+            parts = line.split()
+            if not parts or parts[0] not in ("v", "f"):
+                continue
+            try:
+                if parts[0] == "v":
+                    x, y, z = (float(c) for c in parts[1:4])
+                    vertices.append((x, y, z))
+                    continue
+                corners = [int(p.split("/")[0]) for p in parts[1:]]
+            except ValueError:
+                raise MeshError(f"{path}: line {number} is not a valid OBJ '{parts[0]}' line") from None
+            # 1-based; negative indices count back from the latest vertex; 0 is invalid (-1 is then refused)
+            corners = [c - 1 if c > 0 else len(vertices) + c if c < 0 else -1 for c in corners]
+            faces += [(corners[0], corners[i], corners[i + 1]) for i in range(1, len(corners) - 1)]
+    return np.array(vertices, np.float64).reshape(-1, 3), np.array(faces, np.int64).reshape(-1, 3)
+
+
+def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         # process=False keeps the vertex order and count exactly as in the file.
         mesh = trimesh.load(path, process=False, force="mesh")
@@ -60,6 +81,24 @@ def load_mesh(path: str | os.PathLike, max_vertices: int = DEFAULT_MAX_VERTICES)
         raise MeshError(f"{path}: file holds no triangle mesh")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3) if len(mesh.faces) else np.zeros((0, 3), np.int64)
+    return vertices, faces
+
+
+def load_mesh(path: str | os.PathLike, max_vertices: int = DEFAULT_MAX_VERTICES,
+              unit: str = "m") -> tuple[np.ndarray, np.ndarray]:
+    """Read a mesh file in ``unit`` (m, cm, mm) -> (vertices (V, 3) float32 metres, faces (F, 3) int64), validated."""
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"{path}: no such file")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise MeshError(f"{path}: unsupported mesh format (use one of {', '.join(MESH_SUFFIXES)})")
+    if path.stat().st_size == 0:
+        raise MeshError(f"{path}: file is empty")
+    try:
+        vertices, faces = read_obj(path) if path.suffix.lower() == ".obj" else _read_with_trimesh(path)
+    except OSError as e:
+        raise MeshError(f"{path}: cannot read mesh ({e.strerror})") from None
+    vertices = vertices * UNITS[unit]
     validate_mesh(vertices, faces, str(path), max_vertices)
     return vertices.astype(np.float32), faces
 

@@ -79,3 +79,24 @@ def test_bad_files(tmp_path, sphere):
     save_mesh(tmp_path / "big.obj", *sphere)
     with pytest.raises(MeshError, match="exceeds the limit"):
         load_mesh(tmp_path / "big.obj", max_vertices=10)
+
+
+def test_obj_keeps_every_vertex_in_file_order(tmp_path):
+    """trimesh's OBJ loader drops vertices no face uses (even with process=False); ours keeps them."""
+    (tmp_path / "loose.obj").write_text("v 9 9 9\nv 0 0 0\nvt 0 0\nv 1 0 0\nv 0 1 0\nv 5 5 5\nf 2/1 3/1 4/1\nf -3 -2 -1\n")
+    assert len(trimesh.load(tmp_path / "loose.obj", process=False).vertices) < 5  # what the loader would give
+    verts, faces = load_mesh(tmp_path / "loose.obj")
+    np.testing.assert_array_equal(verts, [[9, 9, 9], [0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 5]])
+    np.testing.assert_array_equal(faces, [[1, 2, 3], [2, 3, 4]])  # negative indices count back
+
+
+def test_units_scale_to_metres_and_absurd_coordinates_are_refused(tmp_path):
+    (tmp_path / "cm.obj").write_text("v 0 0 0\nv 0 0 170\nv 0 20 0\nf 1 2 3\n")
+    assert load_mesh(tmp_path / "cm.obj", unit="cm")[0].max() == pytest.approx(1.7)
+    (tmp_path / "km.obj").write_text("v 0 0 0\nv 0 0 1700\nv 0 20 0\nf 1 2 3\n")
+    with pytest.raises(MeshError, match=r"reaches 1\.7e\+03 m, beyond ±1,000 m \(wrong --unit\?\)"):
+        load_mesh(tmp_path / "km.obj")
+    assert load_mesh(tmp_path / "km.obj", unit="mm")[0].max() == pytest.approx(1.7)
+    (tmp_path / "bad.obj").write_text("v 0 0 zero\n")
+    with pytest.raises(MeshError, match="line 1 is not a valid OBJ 'v' line"):
+        load_mesh(tmp_path / "bad.obj")
