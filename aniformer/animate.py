@@ -18,16 +18,16 @@ A sequence shorter than T is padded at the end by repeating its last frame.
 
 Centring: every driving frame and the target are bounding-box centred like the training pairs
 (``center="mesh"``; ``"window"`` centres each window as a whole, ``"none"`` not at all: use the
-checkpoint's ``data.center``). The model outputs centred meshes, so the result is centred frame by
-frame: a hop stays in place. ``trajectory=True`` re-adds the driver's bounding-box-centre path
-(relative to its first frame, scaled by target height / driver height, z up).
+checkpoint's ``data.center``). The model outputs centred meshes; ``root_motion`` gives the
+translation that puts each output frame where the driver is (world space).
 
 glTF
 ----
 ``write_glb`` writes a binary glTF 2.0 file by hand (trimesh can neither write nor read morph
-targets): one mesh whose base POSITION is the first frame, one morph target per frame (POSITION
-deltas from the base; frame 0's is zero), and one animation whose ``weights`` channel switches
-the active morph target with STEP interpolation at ``fps``. See docs/animate.md for the layout.
+targets): y up, the clip split into meshes of at most ``FRAMES_PER_MESH`` frames, each a base
+POSITION plus one morph target per later frame switched by sparse one-hot weights, the chunk on
+show picked by its node's scale, and the root motion on the root node; STEP keys at k / fps and
+an end key at N / fps. See docs/animate.md for the layout.
 """
 
 from __future__ import annotations
@@ -74,23 +74,46 @@ def driving_files(spec: str | os.PathLike) -> list[Path]:
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
-def load_driving(files: list[Path], max_vertices: int = DEFAULT_MAX_VERTICES,
+def load_driving(files: list[Path], max_vertices: int = DEFAULT_MAX_VERTICES, unit: str = "m",
                  progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Load frames -> (vertices (N, V, 3) float32, faces of the first frame); all must share V."""
+    """Load frames -> (vertices (N, V, 3) float32 metres, faces); every frame must have the first one's faces."""
     frames, faces = [], None
     for path in files:
-        vertices, f = load_mesh(path, max_vertices=max_vertices)
+        vertices, f = load_mesh(path, max_vertices=max_vertices, unit=unit)
         if faces is None:
             faces = f
         elif len(vertices) != len(frames[0]):
             raise MeshError(f"{path}: {len(vertices):,} vertices, but the first driving frame {files[0].name} "
                             f"has {len(frames[0]):,} (all frames of a sequence must share one mesh)")
+        elif not np.array_equal(f, faces):
+            raise MeshError(f"{path}: other faces than the first driving frame {files[0].name} "
+                            "(all frames of a sequence must share one mesh)")
         frames.append(vertices)
         if progress is not None:
             progress(1)
     if not frames:
         raise MeshError("the driving sequence has no frames")
     return np.stack(frames), faces
+
+
+FPS_SIDECARS = ("sequence.json", "export.json")  # beside the frames: {"fps": 60, ...}
+
+
+def driving_fps(files: list[Path]) -> float | None:
+    """The frame rate a JSON file beside the driving frames declares (``FPS_SIDECARS``), else None."""
+    for sidecar in (files[0].parent / name for name in FPS_SIDECARS):
+        if not sidecar.is_file():
+            continue
+        try:
+            fps = json.loads(sidecar.read_text()).get("fps")
+        except (OSError, ValueError, AttributeError) as e:
+            raise MeshError(f"{sidecar}: not a readable JSON object ({type(e).__name__})") from None
+        if fps is None:
+            continue
+        if isinstance(fps, bool) or not isinstance(fps, int | float) or not 0 < fps < float("inf"):
+            raise MeshError(f"{sidecar}: fps must be a positive number, got {fps!r}")
+        return float(fps)
+    return None
 
 
 # --------------------------------------------------------------------------------------------
@@ -134,7 +157,6 @@ def animate_sequence(
     outputs: slice = slice(None),
     combine: str = "mean",
     center: str = "mesh",
-    trajectory: bool = False,
     batch_size: int = 8,
     device: str | torch.device = "cpu",
     progress: Callable[[int], None] | None = None,
@@ -177,18 +199,26 @@ def animate_sequence(
         if progress is not None:
             progress(len(s))
     assert bool((count > 0).all()), "every frame is covered by a window"
-    result = (total / count[:, None, None]).float().numpy()
-    if trajectory:
-        result = result + driver_trajectory(raw.numpy(), target_t.numpy())[:, None, :]
-    return result
+    return (total / count[:, None, None]).float().numpy()
 
 
-def driver_trajectory(driving: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(N, 3): the driver's bbox-centre path relative to frame 0, scaled by target / driver height (z)."""
+def root_motion(driving: np.ndarray, local: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(N, 3) translations that put bbox-centred output frames ``local (N, V2, 3)`` where the driver is (z up).
+
+    Horizontally the result starts at the driver's first bbox centre and travels the driver's
+    path scaled by s = target height / driver height (z extents of the target and the first
+    driving frame), so a smaller body takes smaller steps. Vertically the driver's lowest point
+    over the clip is the floor, and the floor goes to z = 0 (where clients draw the ground): the
+    result's lowest point stands on it whenever the driver's does, and rises s times as high.
+    """
     centres = (driving.min(1) + driving.max(1)) / 2
+    lowest = driving[..., 2].min(1)
+    floor = lowest.min()
     driver_height = float(np.ptp(driving[0, :, 2]))
     scale = float(np.ptp(target[:, 2])) / driver_height if driver_height > 0 else 1.0
-    return ((centres - centres[0]) * scale).astype(np.float32)
+    xy = centres[0, :2] + scale * (centres[:, :2] - centres[0, :2])
+    z = scale * (lowest - floor) - local[..., 2].min(1)
+    return np.concatenate([xy, z[:, None]], 1).astype(np.float32)
 
 
 def num_windows(frames: int, window: int, outputs: slice = slice(None), combine: str = "mean") -> int:
@@ -197,122 +227,211 @@ def num_windows(frames: int, window: int, outputs: slice = slice(None), combine:
 
 
 # --------------------------------------------------------------------------------------------
-# Binary glTF 2.0 with one morph target per frame
+# Binary glTF 2.0: morph-target meshes in chunks, root motion on the node
 # --------------------------------------------------------------------------------------------
 
 _FLOAT, _UINT = 5126, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 _GLB_MAGIC, _JSON_CHUNK, _BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
+FRAMES_PER_MESH = 256  # frames per mesh by default: WebGL2 guarantees 256 texture-array layers
+MAX_MORPH_TARGETS = 2048  # three.js keeps a mesh's morph targets in one texture array; beyond this it freezes
+MAX_GLB_BYTES = 2**31 - 1  # browsers (three.js) load a GLB into one ArrayBuffer; the GLB header counts in uint32
 
 
-def _public(path: Path) -> None:
-    """mkstemp makes files 0600; outputs are ordinary files (0666 minus the umask)."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
+def to_gltf_axes(vertices: np.ndarray) -> np.ndarray:
+    """z-up (the project's convention) -> glTF's y-up: (x, y, z) -> (x, z, -y)."""
+    return np.stack([vertices[..., 0], vertices[..., 2], -vertices[..., 1]], -1)
+
+
+def from_gltf_axes(vertices: np.ndarray) -> np.ndarray:
+    """glTF's y-up -> z-up: (x, y, z) -> (x, -z, y); the inverse of ``to_gltf_axes``."""
+    return np.stack([vertices[..., 0], -vertices[..., 2], vertices[..., 1]], -1)
+
+
+def mesh_chunks(frames: int, frames_per_mesh: int = FRAMES_PER_MESH) -> list[tuple[int, int]]:
+    """[start, end) frame ranges of the meshes a clip is split into."""
+    return [(s, min(s + frames_per_mesh, frames)) for s in range(0, frames, frames_per_mesh)]
+
+
+def glb_size(frames: int, vertices: int, triangles: int, frames_per_mesh: int = FRAMES_PER_MESH) -> int:
+    """Binary size of ``write_glb``'s file, without its JSON (a few hundred bytes per frame)."""
+    positions = 12 * vertices * (frames + len(mesh_chunks(frames, frames_per_mesh)))
+    return positions + 12 * triangles + 32 * frames  # + keys, sparse weights, translations
+
+
+class _Buffer:
+    """The GLB's binary chunk and the bufferViews / accessors that point into it."""
+
+    def __init__(self):
+        self.blobs: list[bytes] = []
+        self.views: list[dict] = []
+        self.accessors: list[dict] = []
+        self.length = 0
+
+    def view(self, data: np.ndarray, target: int | None = None, stride: int | None = None) -> int:
+        view = {"buffer": 0, "byteOffset": self.length, "byteLength": data.nbytes}
+        view.update({"target": target} if target else {})
+        view.update({"byteStride": stride} if stride else {})
+        blob = np.ascontiguousarray(data).tobytes()
+        self.blobs.append(blob + b"\0" * (-len(blob) % 4))
+        self.length += len(self.blobs[-1])
+        self.views.append(view)
+        return len(self.views) - 1
+
+    def accessor(self, view: int | None, kind: str, count: int, component: int = _FLOAT, offset: int = 0,
+                 bounds: np.ndarray | None = None, **extra) -> int:
+        accessor = {"componentType": component, "count": int(count), "type": kind, **extra}
+        if view is not None:
+            accessor.update(bufferView=view, byteOffset=offset)
+        if bounds is not None:  # required on POSITION and animation inputs
+            accessor["min"] = np.atleast_2d(bounds).min(0).astype(float).tolist()
+            accessor["max"] = np.atleast_2d(bounds).max(0).astype(float).tolist()
+        self.accessors.append(accessor)
+        return len(self.accessors) - 1
+
+    def array(self, values: np.ndarray, kind: str, bounds: bool = False) -> int:
+        """An accessor over a fresh view of float32 ``values`` (animation data)."""
+        values = np.asarray(values, np.float32)
+        return self.accessor(self.view(values), kind, len(values), bounds=values.reshape(len(values), -1) if bounds else None)
+
+    def sparse_one_hot(self, keys: int, targets: int) -> int:
+        """(keys x targets) weights where key j + 1 sets target j to 1 and key 0 none (frame = base):
+        stored sparse, so linear in the frames, not quadratic."""
+        hot = np.arange(1, keys, dtype=np.uint32)
+        index = hot * targets + np.minimum(hot, targets) - 1  # the end key repeats the last frame
+        sparse = {"count": len(index),
+                  "indices": {"bufferView": self.view(index), "componentType": _UINT},
+                  "values": {"bufferView": self.view(np.ones(len(index), np.float32))}}
+        return self.accessor(None, "SCALAR", keys * targets, sparse=sparse)
+
+
+def _mesh_and_weights(buf: _Buffer, frames: np.ndarray, indices: int, name: str) -> tuple[dict, int | None]:
+    """A mesh whose base is ``frames[0]`` with one morph target per later frame, and its weights output."""
+    base, deltas = frames[0], frames[1:] - frames[0]
+    position = buf.accessor(buf.view(base, _ARRAY_BUFFER), "VEC3", len(base), bounds=base)
+    primitive = {"attributes": {"POSITION": position}, "indices": indices, "mode": 4, "material": 0}
+    mesh = {"name": name, "primitives": [primitive]}
+    if not len(deltas):
+        return mesh, None
+    view = buf.view(deltas, _ARRAY_BUFFER, stride=12)  # several accessors in one view need byteStride
+    V = len(base)
+    primitive["targets"] = [{"POSITION": buf.accessor(view, "VEC3", V, offset=k * V * 12, bounds=d)}
+                            for k, d in enumerate(deltas)]
+    mesh["weights"] = [0.0] * len(deltas)
+    mesh["extras"] = {"targetNames": [f"frame_{k}" for k in range(1, len(frames))]}
+    return mesh, buf.sparse_one_hot(len(frames) + 1, len(deltas))
+
+
+def _visibility(start: int, end: int, frames: int) -> tuple[list[int], list[float]]:
+    """STEP keys (frame numbers) and scales that show a chunk for frames [start, end) only."""
+    keys, scales = [0], [1.0 if start == 0 else 0.0]
+    if start > 0:
+        keys, scales = keys + [start], scales + [1.0]
+    if end < frames:
+        keys, scales = keys + [end], scales + [0.0]
+    return keys + [frames], scales + [scales[-1]]
 
 
 def write_glb(path: str | os.PathLike, frames: np.ndarray, faces: np.ndarray, fps: float = 30.0,
-              name: str = "aniformer", extras: dict | None = None) -> Path:
-    """Write ``frames (N, V, 3)`` sharing ``faces (F, 3)`` as an animated GLB (atomically).
+              name: str = "aniformer", translation: np.ndarray | None = None,
+              frames_per_mesh: int = FRAMES_PER_MESH, extras: dict | None = None) -> Path:
+    """Write ``frames (N, V, 3)`` (z up, metres) sharing ``faces (F, 3)`` as an animated GLB, atomically.
 
-    Base POSITION = frame 0; morph target k = frame k - frame 0; animation "``name``" sets weight k
-    to 1 (all others 0) from time k / fps, STEP interpolation. Scene extras hold ``frames``/``fps``.
+    glTF is y up: positions are written as (x, z, -y). The clip is split into meshes of at most
+    ``frames_per_mesh`` frames (child nodes of one root node ``name``); each has its first frame as
+    base and one morph target per later frame, switched by sparse one-hot weights. Only the
+    current chunk has scale 1. ``translation (N, 3)`` (z up), if given, animates the root node
+    (root motion). Every channel is STEP with keys k / fps and one end key at N / fps, so the clip
+    lasts N / fps. See docs/animate.md for the layout.
     """
-    frames = np.ascontiguousarray(frames, np.float32)
-    faces = np.ascontiguousarray(faces, np.uint32)
+    frames = np.asarray(frames, np.float32)
     if frames.ndim != 3 or frames.shape[2] != 3 or len(frames) == 0:
         raise ValueError(f"frames must have shape (N, V, 3) with N >= 1, got {frames.shape}")
     if not np.isfinite(frames).all():
         raise ValueError("frames contain NaN or infinity")
-    if fps <= 0:
+    if not 0 < fps < float("inf"):
         raise ValueError(f"fps must be positive, got {fps}")
-    N, V, _ = frames.shape
-    base = frames[0]
-    deltas = frames - base
-    times = (np.arange(N) / fps).astype(np.float32)
-    weights = np.eye(N, dtype=np.float32)  # key k: weight k = 1
+    frames = to_gltf_axes(frames)
+    faces = np.ascontiguousarray(faces, np.uint32)
+    N = len(frames)
+    buf = _Buffer()
+    indices = buf.accessor(buf.view(faces.ravel(), _ELEMENT_ARRAY_BUFFER), "SCALAR", faces.size, _UINT,
+                           bounds=faces.reshape(-1, 1))
+    all_times = (np.arange(N + 1) / fps).astype(np.float32)
+    time_view = buf.view(all_times) if N > 1 else None  # a single frame has no animation
+    chunks = mesh_chunks(N, frames_per_mesh)
+    several = len(chunks) > 1
+    nodes = [{"name": name, "children": list(range(1, len(chunks) + 1))}]
+    meshes, samplers, channels = [], [], []
 
-    blobs: list[bytes] = []
-    views: list[dict] = []
-    offset = 0
+    def animate(node: int, path: str, keys: list[int] | np.ndarray, output: int) -> None:
+        keys = np.asarray(keys)
+        if np.array_equal(keys, np.arange(keys[0], keys[-1] + 1)):  # a slice of the shared key times
+            times = buf.accessor(time_view, "SCALAR", len(keys), offset=4 * int(keys[0]), bounds=all_times[keys, None])
+        else:
+            times = buf.array(all_times[keys], "SCALAR", bounds=True)
+        samplers.append({"input": times, "output": output, "interpolation": "STEP"})
+        channels.append({"sampler": len(samplers) - 1, "target": {"node": node, "path": path}})
 
-    def add_view(data: bytes, target: int | None) -> int:
-        nonlocal offset
-        view = {"buffer": 0, "byteOffset": offset, "byteLength": len(data)}
-        if target is not None:
-            view["target"] = target
-        pad = (-len(data)) % 4
-        blobs.append(data + b"\0" * pad)
-        offset += len(data) + pad
-        views.append(view)
-        return len(views) - 1
+    for c, (start, end) in enumerate(chunks):
+        label = f"{name}_{start:0{len(str(N))}d}" if several else name
+        mesh, weights = _mesh_and_weights(buf, frames[start:end], indices, label)
+        nodes.append({"name": label, "mesh": c, **({"scale": [0.0] * 3} if start > 0 else {})})
+        meshes.append(mesh)
+        if weights is not None:
+            animate(c + 1, "weights", np.arange(start, end + 1), weights)
+        if several:
+            keys, scales = _visibility(start, end, N)
+            animate(c + 1, "scale", keys, buf.array(np.repeat(np.array(scales)[:, None], 3, 1), "VEC3"))
+    if translation is not None:
+        moves = to_gltf_axes(np.asarray(translation, np.float32))
+        nodes[0]["translation"] = moves[0].astype(float).tolist()
+        if N > 1:
+            animate(0, "translation", np.arange(N + 1), buf.array(np.concatenate([moves, moves[-1:]]), "VEC3"))
 
-    accessors: list[dict] = []
-
-    def add_accessor(view: int, kind: str, count: int, component: int, byte_offset: int = 0,
-                     low=None, high=None) -> int:
-        accessor = {"bufferView": view, "byteOffset": byte_offset, "componentType": component,
-                    "count": int(count), "type": kind}
-        if low is not None:
-            accessor["min"], accessor["max"] = [float(x) for x in np.atleast_1d(low)], [float(x) for x in np.atleast_1d(high)]
-        accessors.append(accessor)
-        return len(accessors) - 1
-
-    indices = add_accessor(add_view(faces.tobytes(), _ELEMENT_ARRAY_BUFFER), "SCALAR", faces.size, _UINT,
-                           low=int(faces.min()), high=int(faces.max()))
-    position = add_accessor(add_view(base.tobytes(), _ARRAY_BUFFER), "VEC3", V, _FLOAT,
-                            low=base.min(0), high=base.max(0))
-    delta_view = add_view(deltas.tobytes(), _ARRAY_BUFFER)
-    targets = [
-        {"POSITION": add_accessor(delta_view, "VEC3", V, _FLOAT, k * V * 12, deltas[k].min(0), deltas[k].max(0))}
-        for k in range(N)
-    ]
-    time_acc = add_accessor(add_view(times.tobytes(), None), "SCALAR", N, _FLOAT, low=times[0], high=times[-1])
-    weight_acc = add_accessor(add_view(weights.tobytes(), None), "SCALAR", N * N, _FLOAT)
-    digits = max(4, len(str(N - 1)))
     gltf = {
         "asset": {"version": "2.0", "generator": "aniformer.animate"},
         "scene": 0,
-        "scenes": [{"nodes": [0], "extras": {"frames": N, "fps": float(fps), **(extras or {})}}],
-        "nodes": [{"mesh": 0, "name": name}],
-        "meshes": [{
-            "name": name,
-            "primitives": [{"attributes": {"POSITION": position}, "indices": indices, "targets": targets,
-                            "mode": 4, "material": 0}],
-            "weights": [0.0] * N,
-            "extras": {"targetNames": [f"frame_{k:0{digits}d}" for k in range(N)]},
-        }],
+        "scenes": [{"name": name, "nodes": [0], "extras": {"frames": N, "fps": float(fps), **(extras or {})}}],
+        "nodes": nodes,
+        "meshes": meshes,
         "materials": [{"name": "body", "doubleSided": True,
                        "pbrMetallicRoughness": {"baseColorFactor": [0.62, 0.70, 0.86, 1.0],
                                                 "metallicFactor": 0.0, "roughnessFactor": 0.8}}],
-        "animations": [{"name": name,
-                        "samplers": [{"input": time_acc, "output": weight_acc, "interpolation": "STEP"}],
-                        "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]}],
-        "buffers": [{"byteLength": offset}],
-        "bufferViews": views,
-        "accessors": accessors,
+        "buffers": [{"byteLength": buf.length}],
+        "bufferViews": buf.views,
+        "accessors": buf.accessors,
     }
+    if channels:  # glTF requires at least one channel per animation
+        gltf["animations"] = [{"name": name, "samplers": samplers, "channels": channels,
+                               "extras": {"fps": float(fps), "frames": N}}]
+    return _write_glb_file(Path(path), gltf, b"".join(buf.blobs))
+
+
+def _write_glb_file(path: Path, gltf: dict, binary: bytes) -> Path:
     text = json.dumps(gltf, separators=(",", ":")).encode()
     text += b" " * ((-len(text)) % 4)
-    binary = b"".join(blobs)
     total = 12 + 8 + len(text) + 8 + len(binary)
-    path = Path(path)
+    if total > MAX_GLB_BYTES:
+        raise ValueError(f"{path.name} would be {total / 2**30:.1f} GiB; glTF clients load at most 2 GiB")
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(struct.pack("<III", _GLB_MAGIC, 2, total))
         f.write(struct.pack("<II", len(text), _JSON_CHUNK) + text)
         f.write(struct.pack("<II", len(binary), _BIN_CHUNK) + binary)
-        _public(tmp)
     return path
 
 
 def read_glb(path: str | os.PathLike) -> dict:
-    """Read back a GLB written by ``write_glb``: {"frames" (N, V, 3), "faces", "times", "weights", "gltf"}."""
+    """Read back a GLB written by ``write_glb``, in the project's axes (z up).
+
+    -> {"frames" (N, V, 3) world positions, "local" (N, V, 3) before the root translation,
+    "translation" (N, 3), "faces", "duration" (the last key time of any channel), "gltf"}.
+    """
     data = Path(path).read_bytes()
     magic, version, length = struct.unpack_from("<III", data, 0)
     if magic != _GLB_MAGIC or version != 2 or length != len(data):
         raise ValueError(f"{path}: not a binary glTF 2.0 file")
-    json_len, json_type = struct.unpack_from("<II", data, 12)
+    json_len = struct.unpack_from("<I", data, 12)[0]
     gltf = json.loads(data[20:20 + json_len])
     bin_start = 20 + json_len + 8
     binary = data[bin_start:bin_start + struct.unpack_from("<I", data, 20 + json_len)[0]]
@@ -322,20 +441,30 @@ def read_glb(path: str | os.PathLike) -> dict:
     def accessor(i: int) -> np.ndarray:
         a = gltf["accessors"][i]
         view = gltf["bufferViews"][a["bufferView"]]
+        stride = view.get("byteStride", 4 * sizes[a["type"]])  # write_glb's strides are tight
         start = view.get("byteOffset", 0) + a.get("byteOffset", 0)
-        n = a["count"] * sizes[a["type"]]
-        arr = np.frombuffer(binary, dtypes[a["componentType"]], n, start)
+        arr = np.frombuffer(binary, dtypes[a["componentType"]], a["count"] * stride // 4, start)
         return arr.reshape(a["count"], sizes[a["type"]]) if a["type"] != "SCALAR" else arr
 
-    primitive = gltf["meshes"][0]["primitives"][0]
-    base = accessor(primitive["attributes"]["POSITION"])
-    deltas = np.stack([accessor(t["POSITION"]) for t in primitive["targets"]])
-    sampler = gltf["animations"][0]["samplers"][0]
-    times = accessor(sampler["input"])
-    weights = accessor(sampler["output"]).reshape(len(times), -1)
-    active = weights.argmax(1)  # the morph target switched on at each key
-    return {"frames": base + deltas[active], "faces": accessor(primitive["indices"]).reshape(-1, 3).astype(np.int64),
-            "times": times, "weights": weights, "gltf": gltf}
+    local = []
+    for mesh in gltf["meshes"]:  # chunk meshes in frame order
+        primitive = mesh["primitives"][0]
+        base = accessor(primitive["attributes"]["POSITION"])
+        local += [base] + [base + accessor(t["POSITION"]) for t in primitive.get("targets", [])]
+    local = from_gltf_axes(np.stack(local))
+    root = gltf["nodes"][0]
+    translation = np.broadcast_to(from_gltf_axes(np.array(root.get("translation", [0.0, 0.0, 0.0]), np.float32)),
+                                  (len(local), 3))
+    duration = 0.0
+    for animation in gltf.get("animations", []):
+        for channel in animation["channels"]:
+            sampler = animation["samplers"][channel["sampler"]]
+            if channel["target"] == {"node": 0, "path": "translation"}:
+                translation = from_gltf_axes(accessor(sampler["output"])[:-1])
+            duration = max(duration, float(accessor(sampler["input"])[-1]))
+    faces = accessor(gltf["meshes"][0]["primitives"][0]["indices"]).reshape(-1, 3).astype(np.int64)
+    return {"frames": local + translation[:, None], "local": local, "translation": np.asarray(translation),
+            "faces": faces, "duration": duration, "gltf": gltf}
 
 
 def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> Path:
@@ -345,5 +474,4 @@ def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
     lines += [f"f {a} {b} {c}" for a, b, c in np.asarray(faces, np.int64) + 1]
     with atomic_path(path) as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n")
-        _public(tmp)
     return Path(path)

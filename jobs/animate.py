@@ -4,18 +4,21 @@
     python jobs/animate.py --checkpoint 3f2a...c9 --target me.ply --driving 'clips/run/frame_*.obj' --out anim/run
 
 ``--driving`` is a directory of OBJ/PLY/... frames or a glob, in natural order (frame_2 before
-frame_10); every frame must have the same vertex count. Target and driver may have any vertex
-counts (also other than training). A T-frame window slides over the sequence one frame at a time;
-overlapping predictions of a frame are averaged (``--combine mean``) or the window centred on it is
-used (``--combine center``, always for a regression-head model); see docs/animate.md. The output is
-bounding-box centred per frame like the training data (``--trajectory`` re-adds the driver's path).
+frame_10); every frame must have the first frame's vertices and faces. Target and driver may have
+any vertex counts (also other than training). Inputs are z up, in ``--unit`` (default m). A T-frame
+window slides over the sequence one frame at a time; overlapping predictions of a frame are
+averaged (``--combine mean``) or the window centred on it is used (``--combine center``, always for
+a regression-head model); see docs/animate.md. The result is placed in world space where the
+driver is (its root motion, scaled to the target's height, feet on the driver's floor);
+``--center`` keeps every frame bounding-box centred instead.
 
-Outputs in ``--out``: frames/frame_NNNN.obj (one per driving frame), animation.glb (glTF 2.0, one
-morph target per frame, STEP animation at ``--fps``), preview.gif (driver | result) and
-animation.json (what was done). They are written under a temporary name beside ``--out`` and
-renamed into place when complete; an existing non-empty ``--out`` is refused unless ``--overwrite``.
-Bad input (unreadable/garbage/empty meshes, NaN, bad faces, mixed vertex counts, meshes over
-``--max-vertices``, a checkpoint that does not match its config) stops with one line, exit 2.
+Outputs in ``--out``: frames/frame_NNNN.obj (one per driving frame, in the inputs' unit and axes),
+animation.glb (glTF 2.0: y up, metres, morph targets, lasting N / fps), preview.gif (driver |
+result) and animation.json (what was done). They are written under a temporary name beside
+``--out`` and renamed into place when complete; an existing non-empty ``--out`` is refused unless
+``--overwrite``. Bad input (unreadable/garbage/empty meshes, NaN, coordinates beyond 1 km, bad
+faces, driving frames with other faces, meshes over ``--max-vertices``, a checkpoint that does not
+match its config) stops with one line, exit 2.
 """
 
 from __future__ import annotations
@@ -30,8 +33,9 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from aniformer.animate import FPS_SIDECARS, FRAMES_PER_MESH, MAX_GLB_BYTES, MAX_MORPH_TARGETS  # noqa: E402
 from aniformer.cli import ArgumentParser, UserError, check_output_dir, run, staged_output_dir  # noqa: E402
-from aniformer.mesh import DEFAULT_MAX_VERTICES  # noqa: E402
+from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS  # noqa: E402
 from jobs.evaluate import resolve_device  # noqa: E402
 from pipeline.tracking import resolve_checkpoint  # noqa: E402
 
@@ -43,17 +47,26 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--target", required=True, metavar="MESH", help="the mesh to animate (OBJ, PLY, ...)")
     p.add_argument("--driving", required=True, metavar="DIR_OR_GLOB", help="driving frames: a directory or a glob")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate of the sequence (GLB animation, preview)")
+    p.add_argument("--fps", type=float, default=None,
+                   help=f"frame rate of the sequence (default: the driver's, from {' or '.join(FPS_SIDECARS)} "
+                        "beside its frames, else 30)")
+    p.add_argument("--unit", choices=tuple(UNITS), default="m", help="unit of the target and driving files (default m)")
+    p.add_argument("--name", default=None,
+                   help="name of the glTF node, mesh and animation (default: TARGET_DRIVING from the file names)")
     p.add_argument("--combine", choices=("mean", "center"), default="mean",
                    help="how overlapping windows combine (default: mean)")
-    p.add_argument("--center", choices=("mesh", "window", "none"), default=None,
-                   help="input centring (default: the checkpoint's data.center, as in training)")
-    p.add_argument("--trajectory", action="store_true",
-                   help="re-add the driver's bounding-box-centre path, scaled to the target's height")
+    p.add_argument("--input-center", choices=("mesh", "window", "none"), default=None,
+                   help="how the model's inputs are centred (default: the checkpoint's data.center, as in training)")
+    p.add_argument("--center", action="store_true",
+                   help="keep every output frame bounding-box centred (no root motion)")
     p.add_argument("--batch-size", type=int, default=8, help="windows per forward pass")
     p.add_argument("--max-vertices", type=int, default=DEFAULT_MAX_VERTICES,
                    help=f"refuse meshes with more vertices (default {DEFAULT_MAX_VERTICES:,})")
     p.add_argument("--max-frames", type=int, default=10_000, help="refuse longer driving sequences (default 10,000)")
+    p.add_argument("--frames-per-mesh", type=int, default=FRAMES_PER_MESH,
+                   help=f"morph targets per glTF mesh, the clip is split beyond (default {FRAMES_PER_MESH}; "
+                        f"three.js plays at most {MAX_MORPH_TARGETS:,})")
+    p.add_argument("--no-glb", action="store_true", help="write no animation.glb (e.g. a clip too large for glTF)")
     p.add_argument("--preview-frames", type=int, default=60,
                    help="frames drawn in preview.gif, evenly spaced (default 60; 0 = no preview)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: cuda if available)")
@@ -65,10 +78,14 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
     for flag, value, low in (("--batch-size", args.batch_size, 1), ("--max-vertices", args.max_vertices, 3),
-                             ("--max-frames", args.max_frames, 1), ("--preview-frames", args.preview_frames, 0)):
+                             ("--max-frames", args.max_frames, 1), ("--preview-frames", args.preview_frames, 0),
+                             ("--frames-per-mesh", args.frames_per_mesh, 1)):
         if value < low:
             raise UserError(f"{flag} must be >= {low}, got {value}")
-    if not args.fps > 0 or args.fps == float("inf"):
+    if args.frames_per_mesh > MAX_MORPH_TARGETS:
+        raise UserError(f"--frames-per-mesh {args.frames_per_mesh:,}: three.js cannot play more than "
+                        f"{MAX_MORPH_TARGETS:,} morph targets per mesh")
+    if args.fps is not None and not 0 < args.fps < float("inf"):
         raise UserError(f"--fps must be a positive number, got {args.fps}")
     out = Path(args.out).expanduser().resolve()
     check_output_dir(out, args.overwrite)
@@ -77,7 +94,17 @@ def main(argv: list[str]) -> None:
     import numpy as np
     from tqdm import tqdm
 
-    from aniformer.animate import animate_sequence, driving_files, load_driving, num_windows, write_glb, write_obj
+    from aniformer.animate import (
+        animate_sequence,
+        driving_files,
+        driving_fps,
+        glb_size,
+        load_driving,
+        num_windows,
+        root_motion,
+        write_glb,
+        write_obj,
+    )
     from aniformer.checkpoint import model_from_checkpoint
     from aniformer.mesh import load_mesh
 
@@ -86,13 +113,19 @@ def main(argv: list[str]) -> None:
     files = driving_files(args.driving)
     if len(files) > args.max_frames:
         raise UserError(f"--driving {args.driving}: {len(files):,} frames exceeds --max-frames {args.max_frames:,}")
-    target, target_faces = load_mesh(args.target, max_vertices=args.max_vertices)
+    target, target_faces = load_mesh(args.target, max_vertices=args.max_vertices, unit=args.unit)
+    fps = args.fps or driving_fps(files) or 30.0
+    name = args.name or f"{Path(args.target).stem}_{files[0].parent.name}"
+    size = glb_size(len(files), len(target), len(target_faces), args.frames_per_mesh)
+    if size > MAX_GLB_BYTES and not args.no_glb:
+        raise UserError(f"animation.glb would be {size / 2**30:.1f} GiB ({len(files):,} frames x {len(target):,} "
+                        "vertices); glTF clients load at most 2 GiB: cut the clip, or --no-glb for the OBJs only")
     with tempfile.TemporaryDirectory(prefix="aniformer-animate-") as scratch:
         model, state = model_from_checkpoint(resolve_checkpoint(args.checkpoint, Path(scratch)))
     config = model.config
-    center = args.center or (state["config"].get("data") or {}).get("center", "mesh")
+    input_center = args.input_center or (state["config"].get("data") or {}).get("center", "mesh")
     with tqdm(total=len(files), unit="frame", desc="load driving", disable=args.no_progress, file=sys.stderr) as bar:
-        driving, driving_faces = load_driving(files, args.max_vertices, progress=bar.update)
+        driving, driving_faces = load_driving(files, args.max_vertices, args.unit, progress=bar.update)
     loaded = time.perf_counter()
 
     model = model.to(device)
@@ -101,34 +134,41 @@ def main(argv: list[str]) -> None:
     total = num_windows(len(driving), config.window, outputs, combine)
     with tqdm(total=total, unit="window", desc="animate", disable=args.no_progress, file=sys.stderr) as bar:
         result = animate_sequence(model, driving, target, window=config.window, outputs=outputs, combine=combine,
-                                  center=center, trajectory=args.trajectory, batch_size=args.batch_size,
-                                  device=device, progress=bar.update)
+                                  center=input_center, batch_size=args.batch_size, device=device, progress=bar.update)
     inferred = time.perf_counter()
     if not np.isfinite(result).all():
         raise UserError(f"the model produced NaN or infinite coordinates ({args.checkpoint}: diverged weights?)")
+    from aniformer.mesh import center_bbox
+
+    local = center_bbox(result)
+    translation = None if args.center else root_motion(driving, local, target)
+    world = local if translation is None else local + translation[:, None]
 
     with staged_output_dir(out, args.overwrite) as tmp:
         digits = max(4, len(str(len(result) - 1)))
         (tmp / "frames").mkdir()
-        for k, vertices in enumerate(tqdm(result, unit="obj", desc="write OBJ", disable=args.no_progress, file=sys.stderr)):
+        for k, vertices in enumerate(tqdm(world / UNITS[args.unit], unit="obj", desc="write OBJ",
+                                          disable=args.no_progress, file=sys.stderr)):
             write_obj(tmp / "frames" / f"frame_{k:0{digits}d}.obj", vertices, target_faces)
-        write_glb(tmp / "animation.glb", result, target_faces, fps=args.fps,
-                  extras={"checkpoint": str(args.checkpoint), "driving": str(args.driving)})
+        if not args.no_glb:
+            write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
+                      frames_per_mesh=args.frames_per_mesh,
+                      extras={"checkpoint": str(args.checkpoint), "driving": str(args.driving)})
         if args.preview_frames:
-            from aniformer.mesh import center_bbox
             from aniformer.render import render_animation_gif
 
-            shown = driving if args.trajectory else center_bbox(driving)
+            shown = center_bbox(driving) if args.center else driving
             with tqdm(total=min(args.preview_frames, len(result)), unit="frame", desc="preview",
                       disable=args.no_progress, file=sys.stderr) as bar:
-                render_animation_gif([("driver", shown, driving_faces), ("result", result, target_faces)],
-                                     tmp / "preview.gif", fps=args.fps, max_frames=args.preview_frames,
+                render_animation_gif([("driver", shown, driving_faces), ("result", world, target_faces)],
+                                     tmp / "preview.gif", fps=fps, max_frames=args.preview_frames,
                                      progress=bar.update)
         summary = {
             "checkpoint": str(args.checkpoint), "target": str(args.target), "driving": str(args.driving),
-            "frames": len(result), "fps": args.fps, "driving_vertices": int(driving.shape[1]),
-            "target_vertices": int(target.shape[0]), "window": config.window, "combine": combine,
-            "windows": total, "center": center, "trajectory": args.trajectory, "output_centred": not args.trajectory,
+            "name": name, "frames": len(result), "fps": fps, "unit": args.unit,
+            "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
+            "window": config.window, "combine": combine, "windows": total, "input_center": input_center,
+            "output_centred": args.center,
             "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
             "seconds": {"load": round(loaded - start, 3), "inference": round(inferred - loaded, 3),
                         "write": round(time.perf_counter() - inferred, 3)},
@@ -139,7 +179,10 @@ def main(argv: list[str]) -> None:
           f"T={config.window}, {total} windows, combine={combine}) in {seconds:.1f} s "
           f"(inference {inferred - loaded:.1f} s)")
     print(f"frames: {out / 'frames'}/ ({len(result)} OBJ)")
-    print(f"animation: {out / 'animation.glb'}" + (f"\npreview: {out / 'preview.gif'}" if args.preview_frames else ""))
+    if not args.no_glb:
+        print(f"animation: {out / 'animation.glb'} ({len(result)} frames at {fps:g} fps, {len(result) / fps:.2f} s)")
+    if args.preview_frames:
+        print(f"preview: {out / 'preview.gif'}")
 
 
 if __name__ == "__main__":

@@ -1,11 +1,23 @@
-"""Sliding-window animation, the GLB writer, jobs/animate.py end to end and its bad-input handling."""
+"""Sliding-window animation, the GLB writer, jobs/animate.py end to end and its bad-input handling.
+
+Real clients: every GLB a test here writes goes through the Khronos glTF validator (npm
+``gltf-validator``), and the world-space and long clips are played in three.js in headless
+Chromium (tests/js/player.html). Both come from tests/js/package-lock.json (``npm ci --prefix
+tests/js``, which .ci/run does); without node or Chromium those checks are skipped.
+"""
 
 from __future__ import annotations
 
+import functools
+import html
+import http.server
 import json
 import os
+import re
+import shutil
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -15,12 +27,17 @@ import trimesh
 import yaml
 
 from aniformer.animate import (
+    MAX_MORPH_TARGETS,
     animate_sequence,
     driving_files,
+    driving_fps,
     load_driving,
+    mesh_chunks,
     natural_key,
     num_windows,
     read_glb,
+    root_motion,
+    to_gltf_axes,
     window_plan,
     write_glb,
     write_obj,
@@ -32,6 +49,75 @@ from aniformer.model import AniFormer, AniFormerConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_MODEL = dict(channels=(16,), extractor_channels=(8, 16), heads=2, window=3)
+JS = ROOT / "tests" / "js"
+NODE = shutil.which("node")
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+VALIDATOR_READY = NODE is not None and (JS / "node_modules" / "gltf-validator").is_dir()
+THREE_READY = CHROMIUM is not None and (JS / "node_modules" / "three").is_dir()
+NEEDS_VALIDATOR = pytest.mark.skipif(not VALIDATOR_READY, reason="no node or gltf-validator: npm ci --prefix tests/js")
+NEEDS_THREE = pytest.mark.skipif(not THREE_READY, reason="no chromium or three: .ci/run installs both")
+
+
+def khronos_reports(paths: list[Path]) -> list[dict]:
+    """The Khronos validator's counts and messages for each GLB (tests/js/validate.mjs)."""
+    proc = subprocess.run([NODE, str(JS / "validate.mjs"), *map(str, paths)], capture_output=True, text=True,
+                          timeout=600, check=True)
+    return [json.loads(line) for line in proc.stdout.splitlines()]
+
+
+@pytest.fixture(autouse=True)
+def every_glb_passes_the_khronos_validator(tmp_path):
+    yield
+    written = sorted(tmp_path.rglob("*.glb"))
+    if written and VALIDATOR_READY:
+        for report in khronos_reports(written):
+            assert report["numErrors"] == 0 and report["numWarnings"] == 0, report
+
+
+class QuietHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):  # keep pytest's output to the test's own
+        pass
+
+
+def play_in_threejs(glb: Path, frame: int, fps: float, www: Path) -> tuple[dict, Path]:
+    """Load ``glb`` in three.js in headless Chromium, play it to ``frame``: (what the page saw, screenshot)."""
+    www.mkdir()
+    (www / "node_modules").symlink_to(JS / "node_modules", target_is_directory=True)
+    shutil.copy(JS / "player.html", www)
+    shutil.copy(glb, www / "clip.glb")
+    handler = functools.partial(QuietHandler, directory=str(www))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    shot = www / "screenshot.png"
+    cmd = [CHROMIUM, "--headless", "--disable-gpu", "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
+           "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync",
+           f"--user-data-dir={www / 'profile'}", "--window-size=900,700", "--hide-scrollbars",
+           "--virtual-time-budget=60000", f"--screenshot={shot}", "--dump-dom",
+           f"http://127.0.0.1:{server.server_address[1]}/player.html?glb=clip.glb&frame={frame}&fps={fps}"]
+    if os.geteuid() == 0:
+        cmd.insert(2, "--no-sandbox")  # Chromium's sandbox refuses to run as root
+    try:
+        page = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    finally:
+        server.shutdown()
+        server.server_close()
+    found = re.search(r'<pre id="result">(.*?)</pre>', page.stdout, re.S)
+    assert found, page.stdout[-2000:] + page.stderr[-2000:]
+    result = json.loads(html.unescape(found.group(1)))
+    assert result["ok"] and result["glErrors"] == 0, result  # a morph texture too large is GL_INVALID_VALUE
+    keep = os.environ.get("ANIFORMER_KEEP_SCREENSHOTS")  # a folder to keep the screenshots in (docs)
+    if keep:
+        shutil.copyfile(shot, Path(keep) / f"threejs_{glb.stem}_frame{frame}.png")
+    return result, shot
+
+
+def body_pixels(shot: Path) -> int:
+    """Pixels of the body's blue (the grid and the background are grey or white)."""
+    from PIL import Image  # matplotlib's dependency
+
+    with Image.open(shot) as im:
+        rgb = np.asarray(im.convert("RGB")).astype(int)
+    return int(((rgb[..., 2] - rgb[..., 0]) > 25).sum())
 
 
 def make_checkpoint(path: Path, **model_kw) -> Path:
@@ -60,6 +146,16 @@ def driving_sequence(frames: int = 30) -> tuple[np.ndarray, np.ndarray]:
     seq = np.repeat(v[None], frames, 0)
     seq[..., 0] += bend
     seq[..., 2] += 0.1 * np.abs(np.sin(2 * np.pi * t))
+    return seq.astype(np.float32), f
+
+
+def jump_and_walk(frames: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """The ellipsoid standing on a floor at z = 0.5, walking 1 m along +x and jumping 0.4 m mid-clip."""
+    v, f = body(2)
+    t = np.arange(frames)[:, None] / max(frames - 1, 1)
+    seq = np.repeat(v[None], frames, 0) + [0.3, -0.2, 0.5 + 0.85]
+    seq[..., 0] += 1.0 * t
+    seq[..., 2] += 0.4 * np.clip(np.sin(np.pi * (t - 0.25) / 0.5), 0, None) * (np.abs(t - 0.5) < 0.25)
     return seq.astype(np.float32), f
 
 
@@ -114,13 +210,30 @@ def test_regression_head_and_other_topology_predict_every_frame():
     assert out.shape == (7, len(target), 3) and np.isfinite(out).all()
 
 
-def test_model_output_is_centred_unless_trajectory():
-    seq, _ = driving_sequence(6)
+def still_target_model(driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Outputs the (centred) target in every frame: the placement alone moves it."""
+    return target[:, None].expand(-1, driving.shape[1], -1, -1)
+
+
+def world_frames(seq: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What jobs/animate.py writes for ``still_target_model``: (local frames, root translation)."""
+    local = center_bbox(animate_sequence(still_target_model, seq, target, window=3))
+    return local, root_motion(seq, local, target)
+
+
+def test_model_output_is_centred_and_root_motion_places_it_where_the_driver_is():
+    seq, _ = jump_and_walk(30)
     plain = animate_sequence(lambda d, t: d, seq, seq[0], window=3)
-    np.testing.assert_allclose((plain.min(1) + plain.max(1)) / 2, 0, atol=1e-6)
-    moved = animate_sequence(lambda d, t: d, seq, seq[0], window=3, trajectory=True)
+    np.testing.assert_allclose((plain.min(1) + plain.max(1)) / 2, 0, atol=1e-6)  # the model sees centred meshes
+    local, move = world_frames(seq, seq[0])
+    world = local + move[:, None]
     centres = (seq.min(1) + seq.max(1)) / 2
-    np.testing.assert_allclose((moved.min(1) + moved.max(1)) / 2, centres - centres[0], atol=1e-5)
+    np.testing.assert_allclose(((world.min(1) + world.max(1)) / 2)[:, :2], centres[:, :2], atol=1e-5)  # same place
+    np.testing.assert_allclose(world[..., 2].min(1), seq[..., 2].min(1) - 0.5, atol=1e-5)  # the floor goes to z = 0
+    half, half_move = world_frames(seq, seq[0] * 0.5)  # a half-size target: half the steps, half the jump
+    half_world = half + half_move[:, None]
+    np.testing.assert_allclose(half_move[:, 0] - half_move[0, 0], 0.5 * (centres[:, 0] - centres[0, 0]), atol=1e-5)
+    np.testing.assert_allclose(half_world[..., 2].min(1), 0.5 * (seq[..., 2].min(1) - 0.5), atol=1e-5)
 
 
 def test_natural_order_directory_and_glob(tmp_path):
@@ -131,6 +244,27 @@ def test_natural_order_directory_and_glob(tmp_path):
     assert natural_key("a2") < natural_key("a10")
     with pytest.raises(MeshError, match="no file matches"):
         driving_files(str(tmp_path / "nothing_*.obj"))
+
+
+def test_driving_frames_must_share_the_first_frames_faces(tmp_path):
+    write_driver(tmp_path, 4)
+    v, f = body(2)
+    trimesh.Trimesh(v, f[:, ::-1], process=False).export(tmp_path / "frame_3.obj")  # same vertices, flipped faces
+    with pytest.raises(MeshError, match=r"frame_3\.obj: other faces than the first driving frame frame_0\.obj"):
+        load_driving(driving_files(tmp_path))
+
+
+def test_driving_fps_from_a_sidecar(tmp_path):
+    write_driver(tmp_path, 2)
+    files = driving_files(tmp_path)
+    assert driving_fps(files) is None
+    (tmp_path / "export.json").write_text('{"frames": 2}')
+    assert driving_fps(files) is None
+    (tmp_path / "sequence.json").write_text('{"fps": 60}')
+    assert driving_fps(files) == 60.0
+    (tmp_path / "sequence.json").write_text('{"fps": -1}')
+    with pytest.raises(MeshError, match="fps must be a positive number"):
+        driving_fps(files)
 
 
 def test_load_driving_names_first_mismatching_frame(tmp_path):
@@ -148,24 +282,77 @@ def test_load_driving_names_first_mismatching_frame(tmp_path):
 
 def test_glb_round_trip_and_layout(tmp_path):
     seq, faces = driving_sequence(12)
-    path = write_glb(tmp_path / "a.glb", seq, faces, fps=24)
+    move = np.stack([np.arange(12) * 0.1, np.zeros(12), np.full(12, 0.85)], 1).astype(np.float32)
+    path = write_glb(tmp_path / "a.glb", seq, faces, fps=24, name="me_jump", translation=move)
     scene = trimesh.load(path)
     assert scene.metadata["frames"] == 12 and scene.metadata["fps"] == 24
     (mesh,) = scene.geometry.values()
-    np.testing.assert_allclose(mesh.vertices, seq[0], atol=1e-6)  # base = first frame
+    np.testing.assert_allclose(mesh.vertices, to_gltf_axes(seq[0]), atol=1e-6)  # base = first frame, y up
     back = read_glb(path)
-    np.testing.assert_allclose(back["frames"], seq, atol=1e-6)
+    np.testing.assert_allclose(back["frames"], seq + move[:, None], atol=1e-5)
+    np.testing.assert_allclose(back["local"], seq, atol=1e-5)
     np.testing.assert_array_equal(back["faces"], faces)
-    np.testing.assert_allclose(back["times"], np.arange(12) / 24, atol=1e-7)
+    assert back["duration"] == pytest.approx(12 / 24)  # every frame is shown for 1 / fps, the last one too
     gltf = back["gltf"]
+    assert [n["name"] for n in gltf["nodes"]] == ["me_jump", "me_jump"] and gltf["meshes"][0]["name"] == "me_jump"
+    assert gltf["animations"][0]["name"] == "me_jump" and gltf["nodes"][0]["translation"] == pytest.approx([0, 0.85, 0])
     primitive = gltf["meshes"][0]["primitives"][0]
-    assert len(primitive["targets"]) == 12 and len(gltf["meshes"][0]["weights"]) == 12
-    sampler = gltf["animations"][0]["samplers"][0]
-    assert sampler["interpolation"] == "STEP"
-    assert gltf["animations"][0]["channels"][0]["target"] == {"node": 0, "path": "weights"}
-    for accessor in [primitive["attributes"]["POSITION"]] + [t["POSITION"] for t in primitive["targets"]]:
-        assert "min" in gltf["accessors"][accessor] and "max" in gltf["accessors"][accessor]  # required by glTF
+    assert len(primitive["targets"]) == 11 and len(gltf["meshes"][0]["weights"]) == 11  # frame 0 is the base
+    assert gltf["meshes"][0]["extras"]["targetNames"][0] == "frame_1"  # Blender's shape key names
+    samplers = gltf["animations"][0]["samplers"]
+    assert {s["interpolation"] for s in samplers} == {"STEP"}
+    assert {c["target"]["path"] for c in gltf["animations"][0]["channels"]} == {"weights", "translation"}
+    weights = gltf["accessors"][samplers[0]["output"]]
+    assert "sparse" in weights and weights["sparse"]["count"] == 12 and "bufferView" not in weights  # linear in N
     assert path.stat().st_size % 4 == 0
+
+
+def test_glb_chunks_a_long_clip_into_meshes_of_at_most_frames_per_mesh(tmp_path):
+    seq, faces = driving_sequence(21)
+    back = read_glb(write_glb(tmp_path / "c.glb", seq, faces, fps=10, name="c", frames_per_mesh=8))
+    assert mesh_chunks(21, 8) == [(0, 8), (8, 16), (16, 21)]
+    gltf = back["gltf"]
+    assert [n["name"] for n in gltf["nodes"]] == ["c", "c_00", "c_08", "c_16"]
+    assert [len(m["primitives"][0]["targets"]) for m in gltf["meshes"]] == [7, 7, 4]
+    assert [n.get("scale") for n in gltf["nodes"][1:]] == [None, [0, 0, 0], [0, 0, 0]]  # frame 0 shows chunk 0
+    np.testing.assert_allclose(back["frames"], seq, atol=1e-5)
+    assert back["duration"] == pytest.approx(2.1)
+
+
+def test_glb_of_one_frame_has_no_animation(tmp_path):
+    seq, faces = driving_sequence(1)
+    back = read_glb(write_glb(tmp_path / "one.glb", seq, faces, translation=np.zeros((1, 3), np.float32)))
+    assert "animations" not in back["gltf"] and back["frames"].shape == seq.shape
+
+
+@NEEDS_THREE
+def test_threejs_plays_a_jump_upright_where_the_driver_is(tmp_path):
+    seq, faces = jump_and_walk(30)
+    local, move = world_frames(seq, seq[0])
+    glb = write_glb(tmp_path / "jump.glb", local, faces, fps=30, name="jump", translation=move)
+    page, shot = play_in_threejs(glb, 15, 30, tmp_path / "www")
+    assert page["duration"] == pytest.approx(1.0) and page["morphs"] == 29 and page["meshes"] == 1
+    first, now = page["first"], page["now"]
+    assert now["shown"] == first["shown"] == 1
+    assert now["max"][1] - now["min"][1] == pytest.approx(1.7, abs=1e-3)  # y extent = body height: it stands up
+    assert first["min"][1] == pytest.approx(0, abs=1e-4)  # feet on the floor at frame 0
+    assert now["min"][1] > 0.35  # in the air mid-jump
+    assert now["min"][0] - first["min"][0] == pytest.approx(15 / 29, abs=1e-3)  # and it walked along x
+    assert body_pixels(shot) > 500  # drawn
+
+
+@NEEDS_THREE
+@pytest.mark.parametrize("frames_per_mesh", [256, MAX_MORPH_TARGETS])
+def test_threejs_plays_a_clip_longer_than_its_morph_target_limit(tmp_path, frames_per_mesh):
+    seq, faces = jump_and_walk(3000)
+    local, move = world_frames(seq, seq[0])
+    glb = write_glb(tmp_path / "long.glb", local, faces, fps=30, name="long", translation=move,
+                    frames_per_mesh=frames_per_mesh)
+    page, shot = play_in_threejs(glb, 2600, 30, tmp_path / "www")
+    chunks = len(mesh_chunks(3000, frames_per_mesh))
+    assert page["duration"] == pytest.approx(100.0) and page["meshes"] == chunks and page["morphs"] == 3000 - chunks
+    assert page["now"]["shown"] == 1 and page["now"]["min"][0] - page["first"]["min"][0] == pytest.approx(2600 / 2999, abs=1e-3)
+    assert body_pixels(shot) > 500
 
 
 def test_write_obj_is_read_back(tmp_path):
@@ -201,7 +388,7 @@ def test_animate_job_end_to_end(inputs, tmp_path, capsys):
     animate_main(["--checkpoint", inputs["checkpoint"], "--target", inputs["target"], "--driving", inputs["driving"],
                   "--out", out, "--fps", 25, "--no-progress", "--batch-size", 14])
     printed = capsys.readouterr().out
-    assert str(out / "animation.glb") in printed and "30 frames" in printed
+    assert f"{out / 'animation.glb'} (30 frames at 25 fps, 1.20 s)" in printed and "30 frames" in printed
     objs = sorted((out / "frames").glob("*.obj"))
     assert len(objs) == 30 and objs[0].name == "frame_0000.obj"
     first = trimesh.load(objs[0], process=False)
@@ -209,15 +396,50 @@ def test_animate_job_end_to_end(inputs, tmp_path, capsys):
     scene = trimesh.load(out / "animation.glb")
     assert scene.metadata["frames"] == 30
     back = read_glb(out / "animation.glb")
-    assert back["frames"].shape == (30, 642, 3)
+    assert back["frames"].shape == (30, 642, 3) and back["duration"] == pytest.approx(30 / 25)
+    assert back["gltf"]["animations"][0]["name"] == "target_driving"  # --target target.ply, --driving driving/
     np.testing.assert_allclose(back["frames"][7], trimesh.load(objs[7], process=False).vertices, atol=1e-5)
+    driving, _ = load_driving(driving_files(inputs["driving"]))
+    assert back["frames"][..., 2].min() == pytest.approx(0, abs=1e-5)  # on the floor (the driver's lowest point)
+    hop = back["frames"][..., 2].min(1)
+    assert hop.argmax() == (driving[..., 2].min(1)).argmax() and hop.max() > 0.05  # leaves it when the driver does
     from PIL import Image
 
     with Image.open(out / "preview.gif") as gif:
         assert gif.n_frames == 30 and gif.size[0] == 2 * gif.size[1]  # driver | result
     summary = json.loads((out / "animation.json").read_text())
     assert summary["frames"] == 30 and summary["windows"] == 28 and summary["combine"] == "mean"
+    assert summary["fps"] == 25 and summary["name"] == "target_driving" and not summary["output_centred"]
     assert [p.name for p in tmp_path.iterdir()] == ["anim"]  # no staging directory left behind
+
+
+def test_animate_job_centred_named_in_centimetres_at_the_drivers_fps(inputs, tmp_path):
+    drv = tmp_path / "clip"
+    seq, faces = driving_sequence(4)
+    for k, vertices in enumerate(seq * 100):  # authored in centimetres
+        write_obj(drv / f"f{k}.obj", vertices, faces)
+    (drv / "sequence.json").write_text('{"fps": 50}')
+    target = write_obj(tmp_path / "t.obj", body(3)[0] * 100, body(3)[1])
+    out = tmp_path / "o"
+    animate_main(["--checkpoint", inputs["checkpoint"], "--target", target, "--driving", drv, "--out", out,
+                  "--unit", "cm", "--center", "--name", "hero", "--no-progress", "--preview-frames", 0])
+    back = read_glb(out / "animation.glb")
+    assert back["duration"] == pytest.approx(4 / 50) and back["gltf"]["nodes"][0]["name"] == "hero"
+    assert "translation" not in back["gltf"]["nodes"][0]
+    np.testing.assert_allclose((back["frames"].min(1) + back["frames"].max(1)) / 2, 0, atol=1e-5)  # centred
+    obj = trimesh.load(out / "frames" / "frame_0001.obj", process=False).vertices  # OBJs in the inputs' unit
+    np.testing.assert_allclose(obj / 100, back["frames"][1], atol=1e-5)
+
+
+@pytest.mark.slow
+@NEEDS_THREE
+def test_animate_job_glb_plays_in_threejs(inputs, tmp_path):
+    out = tmp_path / "anim"
+    animate_main(["--checkpoint", inputs["checkpoint"], "--target", inputs["target"], "--driving", inputs["driving"],
+                  "--out", out, "--no-progress", "--preview-frames", 0])
+    page, shot = play_in_threejs(out / "animation.glb", 15, 30, tmp_path / "www")
+    assert page["duration"] == pytest.approx(1.0) and page["morphs"] == 29 and page["now"]["shown"] == 1
+    assert body_pixels(shot) > 500
 
 
 def test_animate_job_quads_are_triangulated(inputs, tmp_path):
@@ -240,6 +462,10 @@ def _bad(kind: str, root: Path, inputs: dict) -> tuple[list, str]:
         path = drv / name
         path.write_bytes(text if isinstance(text, bytes) else text.encode())
         return drv
+
+    def target_with(text: str) -> Path:
+        (root / "t.obj").write_text(text)
+        return root / "t.obj"
 
     args = {"checkpoint": ckpt, "target": target, "driving": driving}
     word = ""
@@ -265,16 +491,36 @@ def _bad(kind: str, root: Path, inputs: dict) -> tuple[list, str]:
     elif kind == "nan":
         args["driving"], word = driver_with("frame_1.obj", "v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n"), "NaN"
     elif kind == "inf target":
-        (root / "t.obj").write_text("v 0 0 0\nv inf 0 0\nv 0 1 0\nf 1 2 3\n")
-        args["target"], word = root / "t.obj", "infinity"
+        args["target"], word = target_with("v 0 0 0\nv inf 0 0\nv 0 1 0\nf 1 2 3\n"), "infinity"
     elif kind == "face out of range":
-        (root / "t.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n")
-        args["target"], word = root / "t.obj", "t.obj"
+        args["target"], word = target_with("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n"), "t.obj"
     elif kind == "face out of range ply":
         mesh = trimesh.Trimesh(*body(1), process=False)
         data = mesh.export(file_type="ply", encoding="ascii").replace(b"3 0 ", b"3 999 ", 1)
         (root / "t.ply").write_bytes(data)
         args["target"], word = root / "t.ply", "out of range"
+    elif kind == "other faces":
+        write_driver(drv, 3)
+        v, f = body(2)
+        trimesh.Trimesh(v, np.roll(f, 1, axis=0), process=False).export(drv / "frame_2.obj")
+        args["driving"], word = drv, "frame_2.obj: other faces than the first driving frame"
+    elif kind == "huge coordinates":
+        args["target"], word = target_with("v 0 0 0\nv 1e30 0 0\nv 0 1 0\nf 1 2 3\n"), "reaches 1e+30 m"
+    elif kind == "centimetres read as metres":
+        args["target"], word = target_with("v 0 0 0\nv 0 0 1700\nv 0 1 0\nf 1 2 3\n"), "wrong --unit?"
+    elif kind == "bad unit":
+        return [*_argv(args, root), "--unit", "inch"], "invalid choice: 'inch'"
+    elif kind == "bad fps sidecar":
+        args["driving"], word = driver_with("sequence.json", '{"fps": "fast"}'), "fps must be a positive number"
+    elif kind == "too many morph targets":
+        return [*_argv(args, root), "--frames-per-mesh", "4096"], "cannot play more than 2,048 morph targets"
+    elif kind == "glb over 2 GiB":
+        big = trimesh.creation.icosphere(subdivisions=6)  # 40,962 vertices x 4,400 frames x 12 bytes > 2 GiB
+        trimesh.Trimesh(big.vertices, big.faces, process=False).export(root / "big.ply")
+        drv.mkdir()
+        for k in range(4400):  # only counted before the refusal, never read
+            (drv / f"f{k}.obj").touch()
+        args["target"], args["driving"], word = root / "big.ply", drv, "glTF clients load at most 2 GiB"
     elif kind == "mixed vertex counts":
         write_driver(drv, 3)
         trimesh.Trimesh(*body(1), process=False).export(drv / "frame_2.obj")
@@ -311,7 +557,9 @@ def _argv(args: dict, root: Path) -> list:
 
 BAD_CASES = ["missing target", "missing driving", "empty driving dir", "garbage bytes", "garbage obj",
              "unsupported format", "empty file", "no vertices", "nan", "inf target", "face out of range",
-             "face out of range ply", "mixed vertex counts", "over size limit", "too many frames", "garbage checkpoint",
+             "face out of range ply", "mixed vertex counts", "other faces", "huge coordinates",
+             "centimetres read as metres", "bad unit", "bad fps sidecar", "too many morph targets", "glb over 2 GiB",
+             "over size limit", "too many frames", "garbage checkpoint",
              "checkpoint config mismatch", "missing checkpoint", "bad argument", "unknown option", "out not empty"]
 
 
