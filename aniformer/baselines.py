@@ -55,7 +55,8 @@ class NPT(nn.Module):
         self.to_xyz = nn.Linear(config.channels[-1], 3)
         self.activation_checkpointing = False  # as AniFormer's: keep the extractor's and each block's input
 
-    def forward(self, driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def forward(self, driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None = None) -> torch.Tensor:
+        """`faces` is unused: the same call as AniFormer's."""
         B, T, V1, _ = driving.shape
         V2 = target.shape[1]
         frames = rearrange(driving, "b t v c -> (b t) 1 v c")  # frame by frame: frames become samples

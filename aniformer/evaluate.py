@@ -1,12 +1,14 @@
 """Evaluation: PMD (x1e-4) of models and baselines over the pair splits of a mesh bank, a noise
 sweep, and the Table-2-style report (Markdown, CSV, PNG). numpy + torch + matplotlib only.
 
-Every contender is a callable ``predict(driving (B, T, V1, 3), target (B, V2, 3)) -> (B, T', V2, 3)``
+Every contender is a callable ``predict(driving (B, T, V1, 3), target (B, V2, 3), faces) -> (B, T', V2, 3)``
+(``faces``: the pairs' ``target_faces`` where the sampler gives them, for models that transfer along edges)
 scored on the frames it predicts (``frames``: all of a window, or the centre one for the
 regression head), exactly as training reports ``pmd_<split>``, so a checkpoint's numbers here
 match its training curves for the same pairs. The pairs are a ``pipeline.data.PairSampler``-like
 object: anything with ``batch(split, epoch, indices, n=...)`` returning centred numpy arrays
-``driving``, ``target``, ``ground_truth``. The copy-driver needs vertex correspondence between
+``driving``, ``target``, ``ground_truth`` (a mesh bank's, or ``aniformer.synth.stream.StreamPairs``).
+The static target (the target, unmoved) is the other trivial baseline. The copy-driver needs vertex correspondence between
 driver and ground truth, so it is scored on the same pairs drawn without vertex shuffling (PMD is
 invariant to permuting prediction and ground truth together, so the other models' numbers do not
 depend on the shuffle except through what the model does with the order).
@@ -30,7 +32,7 @@ import torch
 
 from aniformer.metrics import PMD_SCALE, pmd
 
-Predict = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+Predict = Callable[[torch.Tensor, torch.Tensor, torch.Tensor | None], torch.Tensor]
 
 
 @dataclass
@@ -50,8 +52,8 @@ def model_contender(name: str, model: torch.nn.Module, device: str | torch.devic
     model = model.to(device).eval()
 
     @torch.inference_mode()
-    def predict(driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return model(driving.to(device), target.to(device)).float().cpu()
+    def predict(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None) -> torch.Tensor:
+        return model(driving.to(device), target.to(device), None if faces is None else faces.to(device)).float().cpu()
 
     return Contender(name, predict, model.config.window, model.config.output_frames())
 
@@ -59,7 +61,17 @@ def model_contender(name: str, model: torch.nn.Module, device: str | torch.devic
 def copy_driver_contender(window: int, name: str = "copy-driver") -> Contender:
     from aniformer.baselines import copy_driver
 
-    return Contender(name, copy_driver, window, slice(None), needs_correspondence=True)
+    return Contender(name, lambda driving, target, faces: copy_driver(driving, target), window, slice(None),
+                     needs_correspondence=True)
+
+
+def static_target_contender(window: int, name: str = "static target") -> Contender:
+    """The target, unmoved: what a model scores if it ignores the driver."""
+
+    def predict(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None) -> torch.Tensor:
+        return target[:, None].expand(-1, driving.shape[1], -1, -1)
+
+    return Contender(name, predict, window, slice(None))
 
 
 def _noise_rng(seed: int, split: str, level: float, lo: int) -> np.random.Generator:
@@ -76,7 +88,9 @@ def split_pmd(contender: Contender, sampler, split: str, *, pairs: int, batch_si
         driving = batch["driving"]
         if noise > 0:
             driving = driving + _noise_rng(seed, split, noise, lo).uniform(-noise, noise, driving.shape).astype(np.float32)
-        pred = contender.predict(torch.from_numpy(np.ascontiguousarray(driving)), torch.from_numpy(batch["target"]))
+        faces = batch.get("target_faces")
+        pred = contender.predict(torch.from_numpy(np.ascontiguousarray(driving)), torch.from_numpy(batch["target"]),
+                                 None if faces is None else torch.from_numpy(faces))
         gt = torch.from_numpy(batch["ground_truth"])[:, contender.frames]
         if pred.shape != gt.shape:
             raise ValueError(f"{contender.name}: prediction {tuple(pred.shape)} vs ground truth {tuple(gt.shape)}")

@@ -30,6 +30,12 @@ Switches beyond the paper (all in `AniFormerConfig`):
                             output is permutation-equivariant in the target and V1 != V2 is free
     temporal="attention"    each vertex additionally attends across the T frames
     head="regression"       the vanilla regression-head transformer of Table 1 (one mesh per window)
+    output="residual"       the driver plus a predicted per-vertex correction (needs driver and
+                            target on one topology, V1 == V2, in corresponding vertex order);
+                            the correction layer starts at zero, so training starts from copy-driver
+    output="transfer"       the same on top of the deformation transfer of the target into each
+                            driving pose (aniformer/transfer.py: the target's edges turned by the
+                            driver's per-vertex rotations); needs the faces: model(d, t, faces)
     pool_driving=True       the paper's max-pool variant for non-SMPL meshes: driving features are
                             max-pooled over vertices and broadcast to the target's vertices (used
                             automatically by attention="self" when V1 != V2)
@@ -48,9 +54,12 @@ from torch import nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.checkpoint import checkpoint
 
+from aniformer.transfer import deformation_transfer
+
 ATTENTIONS = ("self", "cross")
 TEMPORALS = ("embedding", "attention")
 HEADS = ("constraints", "regression")
+OUTPUTS = ("absolute", "residual", "transfer")
 # The fused kernels of F.scaled_dot_product_attention; "math" materialises the V x V map.
 ATTENTION_KERNELS = {"cudnn": SDPBackend.CUDNN_ATTENTION, "flash": SDPBackend.FLASH_ATTENTION,
                      "efficient": SDPBackend.EFFICIENT_ATTENTION, "math": SDPBackend.MATH}
@@ -67,6 +76,7 @@ class AniFormerConfig:
     attention: str = "self"
     temporal: str = "embedding"
     head: str = "constraints"
+    output: str = "absolute"
     pool_driving: bool = False
 
     def __post_init__(self):
@@ -80,6 +90,8 @@ class AniFormerConfig:
             raise ValueError(f"temporal must be one of {TEMPORALS}, got {self.temporal!r}")
         if self.head not in HEADS:
             raise ValueError(f"head must be one of {HEADS}, got {self.head!r}")
+        if self.output not in OUTPUTS:
+            raise ValueError(f"output must be one of {OUTPUTS}, got {self.output!r}")
         if not self.channels or not self.extractor_channels:
             raise ValueError("channels and extractor_channels must not be empty")
         if self.window < 1:
@@ -234,7 +246,8 @@ class EncoderStage(nn.Module):
 
 
 class AniFormer(nn.Module):
-    """`model(driving (B, T, V1, 3), target (B, V2, 3)) -> (B, T, V2, 3)` (`(B, 1, V2, 3)` with the regression head)."""
+    """`model(driving (B, T, V1, 3), target (B, V2, 3)) -> (B, T, V2, 3)` (`(B, 1, V2, 3)` with the regression head);
+    `faces (F, 3)` of the shared topology (or `(B, F, 3)`, one topology per batch) for `output="transfer"`."""
 
     def __init__(self, config: AniFormerConfig = AniFormerConfig()):
         super().__init__()
@@ -254,13 +267,21 @@ class AniFormer(nn.Module):
             self.to_xyz = nn.Sequential(nn.Linear(last, last), nn.ReLU(), nn.Linear(last, 3))
         else:
             self.to_xyz = nn.Linear(last, 3)
+        if config.output != "absolute":  # start from the prior: copy-driver or the deformation transfer
+            nn.init.zeros_(self.to_xyz[-1].weight if config.head == "regression" else self.to_xyz.weight)
+            nn.init.zeros_(self.to_xyz[-1].bias if config.head == "regression" else self.to_xyz.bias)
         self.activation_checkpointing = False
 
-    def forward(self, driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def forward(self, driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None = None) -> torch.Tensor:
         B, T, V1, _ = driving.shape
         V2 = target.shape[1]
         if T != self.config.window:
             raise ValueError(f"driving window has {T} frames, the model was built for window={self.config.window}")
+        if self.config.output != "absolute" and V1 != V2:
+            raise ValueError(f"output={self.config.output!r} needs driver and target of one topology; "
+                             f"got {V1} and {V2} vertices")
+        if self.config.output == "transfer" and faces is None:
+            raise ValueError("output='transfer' needs the faces of the topology: model(driving, target, faces)")
         checkpointed = self.activation_checkpointing
         features = run_block(self.extractor, checkpointed, driving) + self.temporal_embedding[:, None, :]  # eq. 1
         if self.config.attention == "cross":
@@ -275,7 +296,12 @@ class AniFormer(nn.Module):
             x = stage(x, target, memory, checkpointed)
         if self.config.head == "regression":
             x = x.mean(dim=1, keepdim=True)  # average over the sequence, one output mesh
-        return 2 * torch.tanh(self.to_xyz(x))
+        if self.config.output == "absolute":
+            return 2 * torch.tanh(self.to_xyz(x))
+        base = driving[:, self.config.output_frames()]
+        if self.config.output == "transfer":
+            base = deformation_transfer(base, target, faces[0] if faces.dim() == 3 else faces)
+        return base + self.to_xyz(x).to(driving.dtype)
 
     def forward_flops(self, v1: int, v2: int | None = None) -> int:
         """Matmul FLOPs (2 per multiply-add) of one forward window with V1 driving and V2 target

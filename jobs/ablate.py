@@ -57,24 +57,26 @@ def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: s
 def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: int, pairs: int):
     """{row: {split: PMD x1e4}} on the same pairs for every row, and the splits used."""
     from aniformer.checkpoint import model_from_checkpoint
-    from aniformer.evaluate import Samplers, copy_driver_contender, evaluate_table, model_contender
-    from pipeline.data import SPLITS, PairSampler, load_bank
+    from aniformer.evaluate import (
+        Samplers,
+        copy_driver_contender,
+        evaluate_table,
+        model_contender,
+        static_target_contender,
+    )
 
-    bank = load_bank(bank_dir)
-    splits = list(ablation.splits) or [s for s in SPLITS if s in bank.manifest["splits"]]
-    unknown = [s for s in splits if s not in bank.manifest["splits"]]
+    first = next(iter(specs.values())).data
+    make_sampler, available = _pair_samplers(first, bank_dir, seed, pairs)
+    splits = list(ablation.splits) or available
+    unknown = [s for s in splits if s not in available]
     if unknown:
-        raise UserError(f"ablation.splits: unknown split(s) {', '.join(unknown)}; the bank has "
-                        f"{', '.join(bank.manifest['splits'])}")
-    splits = [s for s in splits if bank.manifest["splits"][s]["motions"] and bank.manifest["splits"][s]["targets"]]
-
-    center = next(iter(specs.values())).data.center
+        raise UserError(f"ablation.splits: unknown or empty split(s) {', '.join(unknown)}; the data has "
+                        f"{', '.join(available)}")
     samplers = {}  # one per shuffle mode, each caching a sampler per window
 
     def sampler_for(shuffle: str) -> Samplers:
         if shuffle not in samplers:
-            samplers[shuffle] = Samplers(lambda window, mode: PairSampler(
-                bank, window=window, shuffle=mode, center=center, seed=seed, eval_pairs=pairs), shuffle)
+            samplers[shuffle] = Samplers(make_sampler, shuffle)
         return samplers[shuffle]
 
     table = {}
@@ -83,9 +85,25 @@ def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: in
         table |= evaluate_table([model_contender(row, model)], sampler_for(spec.data.shuffle), splits,
                                 pairs=pairs, seed=seed)
     if ablation.copy_driver:
-        window = next(iter(specs.values())).data.window
-        table |= evaluate_table([copy_driver_contender(window)], sampler_for("none"), splits, pairs=pairs, seed=seed)
+        trivial = [copy_driver_contender(first.window), static_target_contender(first.window)]
+        table |= evaluate_table(trivial, sampler_for("none"), splits, pairs=pairs, seed=seed)
     return table, splits
+
+
+def _pair_samplers(data, bank_dir: Path, seed: int, pairs: int):
+    """(make_sampler(window, shuffle), the non-empty splits): the stream's, or the bank's."""
+    if data.source == "stream":
+        from aniformer.synth.stream import SPLITS, StreamPairs
+
+        return (lambda window, mode: StreamPairs(data.topology, window=window, center=data.center, seed=seed,
+                                                 eval_pairs=pairs)), list(SPLITS)
+    from pipeline.data import SPLITS, PairSampler, load_bank
+
+    bank = load_bank(bank_dir)
+    split_table = bank.manifest["splits"]
+    available = [s for s in SPLITS if s in split_table and split_table[s]["motions"] and split_table[s]["targets"]]
+    return (lambda window, mode: PairSampler(bank, window=window, shuffle=mode, center=data.center, seed=seed,
+                                             eval_pairs=pairs)), available
 
 
 def main(argv: list[str]) -> None:
@@ -95,8 +113,9 @@ def main(argv: list[str]) -> None:
 
     base, ablation = load_ablation_config(args.config, args.overrides)
     specs = variant_specs(base, ablation)  # bad config or variant: one line before anything starts
-    if len({spec.data.center for spec in specs.values()}) > 1:
-        raise UserError("ablation variants must share data.center (they are scored on the same pairs)")
+    if len({(spec.data.center, spec.data.source, spec.data.topology) for spec in specs.values()}) > 1:
+        raise UserError("ablation variants must share data.source, data.topology and data.center "
+                        "(they are scored on the same pairs)")
     out, name, bank = RunJobParser.locations(args)
 
     from aniformer.cli import atomic_path
@@ -124,7 +143,7 @@ def main(argv: list[str]) -> None:
         table, splits = _evaluate(specs, checkpoints, bank, ablation, seed, pairs)
         notes = [f"Every variant: {first.train.epochs} epochs x {first.data.pairs_per_epoch} pairs, batch "
                  f"{first.train.batch_size}; scored on {pairs} pairs per split (seed {seed}) with the vertex "
-                 "shuffling it was trained with (copy-driver: unshuffled). Variants (overrides of the base config"
+                 "shuffling it was trained with (copy-driver, static target: unshuffled). Variants (overrides of the base config"
                  + (f", after `{' '.join(ablation.common)}` for every row" if ablation.common else "") + "):", ""]
         notes += [f"- {row}: `{' '.join(ablation.variants[row]) or '(base config)'}` — "
                   f"{specs[row].model_name}, {parameter_count(specs[row].model_name, specs[row].model):,} parameters, "

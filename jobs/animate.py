@@ -24,6 +24,7 @@ match its config) stops with one line, exit 2.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import tempfile
@@ -92,6 +93,7 @@ def main(argv: list[str]) -> None:
     device = resolve_device(args.device)
 
     import numpy as np
+    import torch
     from tqdm import tqdm
 
     from aniformer.animate import (
@@ -128,7 +130,12 @@ def main(argv: list[str]) -> None:
         driving, driving_faces = load_driving(files, args.max_vertices, args.unit, progress=bar.update)
     loaded = time.perf_counter()
 
-    model = model.to(device)
+    if getattr(config, "output", "absolute") != "absolute" and (
+            driving.shape[1] != len(target) or not np.array_equal(driving_faces, target_faces)):
+        raise UserError(f"this model (output={config.output}) needs driver and target of one topology in one vertex "
+                        f"order; got {driving.shape[1]:,} and {len(target):,} vertices"
+                        + ("" if driving.shape[1] != len(target) else " with different faces"))
+    model = functools.partial(model.to(device), faces=torch.from_numpy(np.asarray(target_faces, np.int64)).to(device))
     outputs = config.output_frames()
     combine = args.combine if outputs == slice(None) else "center"
     total = num_windows(len(driving), config.window, outputs, combine)

@@ -5,9 +5,11 @@
         --compare npt=runs/npt/best.pt --compare regression=runs/head/best.pt --noise 0,0.005,0.01,0.02
 
 ``--checkpoint`` (and each ``--compare NAME=CKPT``) is a checkpoint file or an MLflow run id (its
-``checkpoints/best.pt`` artifact). The bank is ``--bank DIR``, else ``bank/`` beside the checkpoint
-(where jobs/train.py puts it). Rows: the checkpoint, every ``--compare`` model and the copy-driver;
-columns: every split of the bank's manifest (``--splits`` to choose). ``--noise`` adds a sweep of
+``checkpoints/best.pt`` artifact). A checkpoint trained on a stream (``data.source: stream``) is
+scored on the stream's splits, made on the fly (``--topology`` to score on another Anny topology);
+otherwise the bank is ``--bank DIR``, else ``bank/`` beside the checkpoint (where jobs/train.py
+puts it). Rows: the checkpoint, every ``--compare`` model, the copy-driver and the static target
+(the target, unmoved); columns: every split (``--splits`` to choose). ``--noise`` adds a sweep of
 uniform driver noise on one split (``--noise-split``) and plots PMD vs noise. Outputs in ``--out``:
 results.md, results.csv, results.json (+ noise.csv, noise.png), written under a temporary name and
 renamed into place when complete; they and the metrics are logged to the MLflow run
@@ -37,7 +39,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--checkpoint", required=True, metavar="CKPT", help="checkpoint file or MLflow run id")
     p.add_argument("--out", required=True, metavar="DIR", help="directory for the tables and plots")
-    p.add_argument("--bank", metavar="DIR", help="mesh bank (default: bank/ beside the checkpoint)")
+    p.add_argument("--bank", metavar="DIR", help="mesh bank (default: bank/ beside the checkpoint; none for a stream)")
+    p.add_argument("--topology", help="stream checkpoints: the Anny topology of the pairs (default: the training one)")
     p.add_argument("--compare", action="append", default=[], metavar="NAME=CKPT",
                    help="a baseline checkpoint (file or run id) as row NAME; repeatable")
     p.add_argument("--name", help="row label of --checkpoint and MLflow run evaluate-NAME (default: from the path)")
@@ -47,7 +50,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--noise-split", metavar="SPLIT", help="split of the noise sweep (default: unseen)")
     p.add_argument("--seed", type=int, help="pair seed (default: the checkpoint's data.seed, as in training)")
     p.add_argument("--batch-size", type=int, default=16)
-    p.add_argument("--no-copy-driver", action="store_true", help="leave out the copy-driver row")
+    p.add_argument("--no-copy-driver", action="store_true", help="leave out the copy-driver and static-target rows")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: cuda if available)")
     p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
     p.add_argument("--no-mlflow", action="store_true", help="do not log to MLflow")
@@ -120,12 +123,11 @@ def main(argv: list[str]) -> None:
         model_contender,
         noise_sweep,
         plot_sweep,
+        static_target_contender,
         sweep_csv,
         table_csv,
         table_markdown,
     )
-    from pipeline.data import GENERATION_FIELDS, SPLITS, PairSampler, load_bank, read_manifest
-
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="aniformer-eval-") as scratch:
         ckpt_path = resolve_checkpoint(args.checkpoint, Path(scratch))
@@ -137,54 +139,33 @@ def main(argv: list[str]) -> None:
 
     config = state["config"]
     data_cfg = config.get("data", {}) or {}
-    if args.bank:
-        bank_dir = Path(args.bank).expanduser()
-    elif not Path(os.path.expanduser(args.checkpoint)).exists():
-        raise UserError("--checkpoint is an MLflow run id: pass --bank DIR (the mesh bank to evaluate on)")
+    pairs = args.pairs or int(data_cfg.get("eval_pairs", 1000))
+    seed = args.seed if args.seed is not None else int(data_cfg.get("seed", 0))
+    center = data_cfg.get("center", "mesh")
+    if data_cfg.get("source") == "stream" and not args.bank:
+        source = _stream_source(args, data_cfg, center, seed, pairs)
     else:
-        bank_dir = ckpt_path.parent / "bank" if ckpt_path.is_file() else ckpt_path / "bank"
-        if not (bank_dir / "manifest.json").is_file():
-            raise UserError(f"no mesh bank beside the checkpoint ({bank_dir}); pass --bank DIR")
-    manifest = read_manifest(bank_dir)
-    known = list(SPLITS)  # the pipeline's order (train, seen, unseen, ...), then any others of the bank
-    all_splits = sorted(manifest["splits"], key=lambda s: (known.index(s) if s in known else len(known), s))
+        if args.topology:
+            raise UserError("--topology applies to checkpoints trained on a stream (data.source: stream)")
+        source = _bank_source(args, ckpt_path, data_cfg, center, seed, pairs)
+    all_splits, descriptions, shuffle, make_sampler, notes, data_label = source
     splits = [s.strip() for s in args.splits.split(",")] if args.splits else all_splits
     unknown = [s for s in splits if s not in all_splits]
     if unknown or not splits:
         raise UserError(f"--splits: unknown split(s) {', '.join(unknown) or '(none given)'}; "
-                        f"the bank has {', '.join(all_splits)}")
-    empty = [s for s in splits if not manifest["splits"][s]["motions"] or not manifest["splits"][s]["targets"]]
-    if empty and args.splits:
-        raise UserError(f"--splits: split(s) {', '.join(empty)} are empty in this bank")
-    splits = [s for s in splits if s not in empty]
+                        f"the data has {', '.join(all_splits)}")
     noise_split = args.noise_split or ("unseen" if "unseen" in splits else splits[-1])
     if levels is not None and noise_split not in all_splits:
-        raise UserError(f"--noise-split {noise_split!r} is not a split of the bank ({', '.join(all_splits)})")
+        raise UserError(f"--noise-split {noise_split!r} is not a split of the data ({', '.join(all_splits)})")
 
     name = args.name or _default_name(args.checkpoint)
     rows = [(args.name or _model_label(state, model), model)] + [(label, m) for label, m, _, _ in others]
-    labels = [r[0] for r in rows] + ([] if args.no_copy_driver else ["copy-driver"])
+    labels = [r[0] for r in rows] + ([] if args.no_copy_driver else ["copy-driver", "static target"])
     if len(set(labels)) != len(labels):
         raise UserError(f"row names must be unique, got {', '.join(labels)}")
     contenders = [model_contender(label, m, device) for label, m in rows]
-    if not args.no_copy_driver:  # one topology per bank: driver and target always correspond
-        contenders.append(copy_driver_contender(model.config.window))
-
-    made = manifest.get("config", {})
-    notes = []
-    differs = [k for k in GENERATION_FIELDS if k in data_cfg and k in made and made[k] != data_cfg[k]]
-    if manifest.get("kind") == "synthetic" and differs:
-        notes.append(f"Note: the bank differs from the checkpoint's training data in {', '.join(differs)}; "
-                     "'seen' motions may not be the ones it was trained on.")
-        print(notes[-1], file=sys.stderr)
-    pairs = args.pairs or int(data_cfg.get("eval_pairs", made.get("eval_pairs", 1000)))
-    seed = args.seed if args.seed is not None else int(data_cfg.get("seed", made.get("seed", 0)))
-    shuffle = data_cfg.get("shuffle", "target")
-    center = data_cfg.get("center", "mesh")
-    bank = load_bank(bank_dir)
-
-    def make_sampler(window: int, shuffle_mode: str):
-        return PairSampler(bank, window=window, shuffle=shuffle_mode, center=center, seed=seed, eval_pairs=pairs)
+    if not args.no_copy_driver:  # one topology per bank or stream: driver and target always correspond
+        contenders += [copy_driver_contender(model.config.window), static_target_contender(model.config.window)]
 
     samplers = Samplers(make_sampler, shuffle)
     from tqdm import tqdm
@@ -200,17 +181,16 @@ def main(argv: list[str]) -> None:
     bar.close()
     seconds = time.perf_counter() - start
 
-    descriptions = {s: manifest["splits"][s].get("description", "") for s in splits}
     notes.append(f"{pairs} pairs per split (seed {seed}, window as each model's, vertex shuffling "
                  f"'{shuffle}'; copy-driver on the same pairs unshuffled). Checkpoint: {args.checkpoint} "
-                 f"(epoch {state.get('epoch')}); bank: {bank_dir.resolve()}.")
+                 f"(epoch {state.get('epoch')}); data: {data_label}.")
     markdown = table_markdown(table, splits, descriptions, notes=notes)
     if sweep is not None:
         markdown += (f"\n**PMD (×10⁻⁴) vs uniform driver noise (± m), split `{noise_split}`**\n\n"
                      + table_markdown({k: {f"{lv:g}": v for lv, v in row.items()} for k, row in sweep.items()},
                                       [f"{lv:g}" for lv in levels], title=None)
                      + "\n![PMD vs noise](noise.png)\n")
-    result = {"checkpoint": args.checkpoint, "bank": str(bank_dir.resolve()), "pairs": pairs, "seed": seed,
+    result = {"checkpoint": args.checkpoint, "data": data_label, "pairs": pairs, "seed": seed,
               "splits": splits, "table": table, "seconds": seconds,
               "noise": None if sweep is None else {"split": noise_split,
                                                    "pmd": {k: {f"{lv:g}": v for lv, v in row.items()}
@@ -236,11 +216,65 @@ def main(argv: list[str]) -> None:
         print(f"MLflow run: {run_id} (evaluate-{name}) in {tracking_uri()}")
 
 
+def _stream_source(args, data_cfg: dict, center: str, seed: int, pairs: int):
+    """(splits, descriptions, shuffle, make_sampler, notes, data label) of the stream splits (no bank)."""
+    from aniformer.synth.bodies import TOPOLOGIES
+    from aniformer.synth.stream import SPLITS, StreamPairs
+
+    topology = args.topology or data_cfg.get("topology")
+    if topology not in TOPOLOGIES:
+        raise UserError(f"--topology must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
+
+    def make_sampler(window: int, shuffle_mode: str):
+        return StreamPairs(topology, window=window, center=center, seed=seed, eval_pairs=pairs)
+
+    descriptions = {name: split.description for name, split in SPLITS.items()}
+    return list(SPLITS), descriptions, "none", make_sampler, [], f"stream, topology {topology}"
+
+
+def _bank_source(args, ckpt_path: Path, data_cfg: dict, center: str, seed: int, pairs: int):
+    """(splits, descriptions, shuffle, make_sampler, notes, data label) of a mesh bank's non-empty splits."""
+    from pipeline.data import GENERATION_FIELDS, SPLITS, PairSampler, load_bank, read_manifest
+
+    if args.bank:
+        bank_dir = Path(args.bank).expanduser()
+    elif not Path(os.path.expanduser(args.checkpoint)).exists():
+        raise UserError("--checkpoint is an MLflow run id: pass --bank DIR (the mesh bank to evaluate on)")
+    else:
+        bank_dir = ckpt_path.parent / "bank" if ckpt_path.is_file() else ckpt_path / "bank"
+        if not (bank_dir / "manifest.json").is_file():
+            raise UserError(f"no mesh bank beside the checkpoint ({bank_dir}); pass --bank DIR")
+    manifest = read_manifest(bank_dir)
+    known = list(SPLITS)  # the pipeline's order (train, seen, unseen, ...), then any others of the bank
+    all_splits = sorted(manifest["splits"], key=lambda s: (known.index(s) if s in known else len(known), s))
+    if args.splits:
+        empty = [s for s in args.splits.split(",") if s.strip() in manifest["splits"]
+                 and not (manifest["splits"][s.strip()]["motions"] and manifest["splits"][s.strip()]["targets"])]
+        if empty:
+            raise UserError(f"--splits: split(s) {', '.join(empty)} are empty in this bank")
+    splits = [s for s in all_splits if manifest["splits"][s]["motions"] and manifest["splits"][s]["targets"]]
+    made = manifest.get("config", {})
+    notes = []
+    differs = [k for k in GENERATION_FIELDS if k in data_cfg and k in made and made[k] != data_cfg[k]]
+    if manifest.get("kind") == "synthetic" and differs:
+        notes.append(f"Note: the bank differs from the checkpoint's training data in {', '.join(differs)}; "
+                     "'seen' motions may not be the ones it was trained on.")
+        print(notes[-1], file=sys.stderr)
+    bank = load_bank(bank_dir)
+
+    def make_sampler(window: int, shuffle_mode: str):
+        return PairSampler(bank, window=window, shuffle=shuffle_mode, center=center, seed=seed, eval_pairs=pairs)
+
+    descriptions = {s: manifest["splits"][s].get("description", "") for s in splits}
+    return splits, descriptions, data_cfg.get("shuffle", "target"), make_sampler, notes, f"bank {bank_dir.resolve()}"
+
+
 def _log_to_mlflow(job: str, args, files: Path, table, sweep, pairs, seed, splits, config) -> str:
     quiet_mlflow()
     from pipeline.tracking import start_job_run
 
-    params = {"evaluate": {"checkpoint": args.checkpoint, "bank": str(args.bank or ""), "pairs": pairs, "seed": seed,
+    params = {"evaluate": {"checkpoint": args.checkpoint, "bank": str(args.bank or ""), "topology": args.topology or "",
+                           "pairs": pairs, "seed": seed,
                            "splits": splits, "compare": args.compare, "noise": args.noise or ""}, **config}
     try:
         tracker = start_job_run(job, params, experiment=args.experiment)

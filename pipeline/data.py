@@ -54,11 +54,14 @@ import re
 import zlib
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from aniformer.cli import UserError
+
+if TYPE_CHECKING:
+    from aniformer.synth.stream import StreamPairs
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
@@ -66,6 +69,7 @@ FACES = "faces.npy"
 SHARD_DIR = "shards"
 SHUFFLE_MODES = ("none", "target", "both")
 CENTER_MODES = ("mesh", "window", "none")
+SOURCES = ("bank", "stream")  # pairs from a mesh bank on disk, or made on the fly (aniformer.synth.stream)
 
 #: Pair splits: name -> (motion-instance group, target-identity group, description).
 SPLITS: dict[str, tuple[str, str, str]] = {
@@ -144,7 +148,11 @@ def _check_choice(name: str, value: Any, choices: Sequence[str]) -> None:
 
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
-    """The ``data:`` section of a config: what the bank holds and how pairs are drawn.
+    """The ``data:`` section of a config: where pairs come from and how they are drawn.
+
+    ``source``: ``bank`` (a mesh bank on disk, described by the fields below) or ``stream`` (pairs
+    made on the fly by ``aniformer.synth.stream``: fresh bodies and smooth motion over the whole
+    pose space; only ``topology``, ``seed``, ``window``, ``center`` and the pair counts apply).
 
     Identities: ``driving_identities`` perform the motion instances (the last
     ``unseen_driving_identities`` of them only for the ``unseen_drivers`` split); target identities
@@ -154,6 +162,7 @@ class DataConfig:
     ``unseen_instance_fraction`` of the seen drivers' other instances is held out ("unseen").
     """
 
+    source: str = "bank"
     topology: str = "notoes_collapse10pc"
     seed: int = 0
     frames: int = 30
@@ -196,6 +205,9 @@ class DataConfig:
             raise ValueError(f"shard_mb must be a positive number, got {shard_mb!r}")
         _check_choice("shuffle", self.shuffle, SHUFFLE_MODES)
         _check_choice("center", self.center, CENTER_MODES)
+        _check_choice("source", self.source, SOURCES)
+        if self.source == "stream" and self.shuffle != "none":
+            raise ValueError("source=stream makes driver and target on one topology: shuffle must be none")
         self.resolved_actions()  # validates actions / heldout_actions
         groups = {m["split"] for m in assign_motions(self)}
         if "seen" not in groups:
@@ -984,9 +996,12 @@ def check_bank_matches(manifest: dict, cfg: DataConfig) -> None:
         raise UserError(f"the bank was generated with other data settings: {shown}; regenerate it or fix the config")
 
 
-def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool) -> tuple[dict, np.ndarray]:
+def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool) -> tuple[dict | None, np.ndarray]:
     """(manifest, faces) of the bank a job trains on: checked against ``cfg`` if it exists, else
-    generated there when ``generate`` (the job's own ``OUT/bank``), else a `UserError`."""
+    generated there when ``generate`` (the job's own ``OUT/bank``), else a `UserError`. A stream
+    needs no bank: (None, the topology's faces)."""
+    if cfg.source == "stream":
+        return None, pair_source(cfg, bank_dir).faces
     bank_dir = Path(bank_dir)
     if (bank_dir / MANIFEST).is_file():
         manifest = read_manifest(bank_dir)
@@ -1002,6 +1017,16 @@ def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool
 # --------------------------------------------------------------------------------------------
 # Pairs (numpy)
 # --------------------------------------------------------------------------------------------
+
+
+def pair_source(cfg: DataConfig, bank_dir: str | os.PathLike | None):
+    """The pairs of a run: a ``StreamPairs`` (``source: stream``) or a ``PairSampler`` over the bank."""
+    if cfg.source == "stream":
+        from aniformer.synth.stream import StreamPairs
+
+        return StreamPairs(cfg.topology, window=cfg.window, center=cfg.center, seed=cfg.seed,
+                           pairs_per_epoch=cfg.pairs_per_epoch, eval_pairs=cfg.eval_pairs)
+    return PairSampler.from_dir(bank_dir, cfg)
 
 
 class PairSampler:
@@ -1039,6 +1064,14 @@ class PairSampler:
             raise UserError(f"window={window} is longer than motion(s) {short[:3]} of the bank")
         self._specs: dict = {}
         self._extents()
+
+    @property
+    def faces(self) -> np.ndarray:
+        return self.bank.faces
+
+    @property
+    def num_vertices(self) -> int:
+        return self.bank.num_vertices
 
     def _extents(self, chunk: int = 4096) -> None:
         """Per-mesh bounding boxes (low, high), so centring a pair costs a subtraction."""
@@ -1222,7 +1255,7 @@ def _assemble(batch: dict, sampler_ref: list, split: str, n: int, first_epoch: i
 
 
 def pair_dataset(
-    bank: str | os.PathLike | PairSampler,
+    bank: str | os.PathLike | PairSampler | StreamPairs,
     split: str = "train",
     cfg: DataConfig | None = None,
     *,
@@ -1244,21 +1277,26 @@ def pair_dataset(
     it as ``datasets={"train": ds}`` and read ``get_dataset_shard("train").iter_torch_batches(...)``;
     one pass over the dataset covers all ``epochs`` (use the ``epoch`` column or count steps).
 
-    ``rows_per_block`` (pairs per Ray Data block) defaults to ~64 MB of pairs, at most 1,024, and
+    ``bank`` is a bank directory or a pair sampler (``pair_source``); a ``StreamPairs`` makes every
+    pair on the fly in the Ray Data tasks, which then scale with the CPUs Ray Data gets, and has
+    only the ``index`` and ``epoch`` id columns.
+
+    ``rows_per_block`` (pairs per Ray Data block) defaults to the sampler's ``block_pairs`` if it
+    has one, else ~64 MB of pairs, at most 1,024, and
     ``batch_size`` (pairs assembled per call) to ``min(256, rows_per_block)``: measured on 2 cores,
     256-pair blocks gave a quarter of the throughput of 1,024-pair ones.
     """
     import ray
     from ray.data import TaskPoolStrategy
 
-    sampler = bank if isinstance(bank, PairSampler) else PairSampler.from_dir(bank, cfg)
+    sampler = PairSampler.from_dir(bank, cfg) if isinstance(bank, (str, os.PathLike)) else bank
     sampler.split(split)  # unknown or empty split: fail here, in the caller, with one line
     n = sampler.default_pairs(split) if pairs is None else int(pairs)
     if n < 1 or epochs < 1 or first_epoch < 0:
         raise UserError(f"pairs ({n}) and epochs ({epochs}) must be >= 1, first_epoch ({first_epoch}) >= 0")
-    V, F = sampler.bank.num_vertices, len(sampler.bank.faces)
+    V, F = sampler.num_vertices, len(sampler.faces)
     pair_bytes = (2 * sampler.window + 1) * V * 12 + F * 24
-    rows_per_block = rows_per_block or max(8, min(1024, int(64e6 // pair_bytes)))
+    rows_per_block = rows_per_block or getattr(sampler, "block_pairs", None) or max(8, min(1024, int(64e6 // pair_bytes)))
     batch_size = batch_size or min(256, rows_per_block)
     ref = ray.put(sampler)
     total = n * epochs

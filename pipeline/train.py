@@ -33,7 +33,7 @@ from aniformer.losses import LossConfig, loss_terms
 from aniformer.metrics import PMD_SCALE, pmd
 from aniformer.model import ATTENTION_KERNELS, attention_kernels
 from pipeline.data import DataConfig as PairDataConfig
-from pipeline.data import data_config, pair_dataset, quiet_ray_data
+from pipeline.data import data_config, pair_dataset, pair_source, quiet_ray_data
 from pipeline.tracking import Tracker
 
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
@@ -139,7 +139,7 @@ def evaluate_split(model, batches, frames: slice, device, autocast) -> tuple[flo
     for batch in batches:
         driving, target = batch["driving"].to(device), batch["target"].to(device)
         with autocast:
-            pred = model(driving, target).float()
+            pred = model(driving, target, batch["target_faces"].to(device)).float()
         gt = batch["ground_truth"].to(device)[:, frames]
         total += pmd(pred, gt).item() * len(pred)
         count += len(pred)
@@ -217,7 +217,7 @@ def train_func(loop_config: dict) -> None:
             # DDP all-reduces gradients on every backward unless told not to: only on update steps.
             with nullcontext() if update or world == 1 else model.no_sync():
                 with autocast, attention_kernels(cfg.attention_kernels):
-                    pred = model(driving, target)
+                    pred = model(driving, target, batch["target_faces"])
                 terms = loss_terms(pred.float(), batch["ground_truth"][:, frames], driving[:, frames], target,
                                    batch["target_faces"], loss_cfg)
                 scaler.scale(terms["total"] / cfg.grad_accumulation).backward()
@@ -271,9 +271,10 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
     config) and `callbacks` let a sweep trial add its own reporting to the same training."""
     cfg = spec.train
     quiet_ray_data()  # before the trainer: it captures the DataContext for its workers
-    datasets = {"train": pair_dataset(bank_dir, "train", spec.data, epochs=cfg.epochs)}
+    source = pair_source(spec.data, bank_dir)  # one bank load for every dataset
+    datasets = {"train": pair_dataset(source, "train", epochs=cfg.epochs)}
     for split in EVAL_SPLITS:
-        datasets[split] = pair_dataset(bank_dir, split, spec.data)
+        datasets[split] = pair_dataset(source, split)
     # Blocks in the order of their pair ids: the same config and seed give the same batches, so the
     # same model (Ray Data otherwise yields blocks as tasks finish, and runs diverged from epoch 1).
     ingest = DataConfig.default_ingest_options()

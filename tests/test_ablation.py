@@ -31,7 +31,7 @@ def test_shipped_ablation_config_has_the_paper_rows_and_one_budget():
     base, ablation = load_ablation_config(ROOT / "configs/ablation.yaml")
     specs = variant_specs(base, ablation)
     full = specs["AniFormer (full)"]
-    default = yaml.safe_load((ROOT / "configs/default.yaml").read_text())
+    default = yaml.safe_load((ROOT / "configs/bank.yaml").read_text())
     assert full.train.epochs == default["train"]["epochs"] and full.model.channels == tuple(default["model"]["channels"])
     assert specs["regression head"].model.head == "regression"
     assert (specs["no head"].loss.motion, specs["no head"].loss.appearance) == (0, 0)
@@ -51,7 +51,7 @@ def test_shipped_seeds_config_repeats_the_default_and_varies_only_the_seed():
     from pipeline.train import RunSpec
 
     specs = variant_specs(*load_ablation_config(ROOT / "configs/seeds.yaml"))
-    default = RunSpec.from_config(yaml.safe_load((ROOT / "configs/default.yaml").read_text())).to_dict()
+    default = RunSpec.from_config(yaml.safe_load((ROOT / "configs/bank.yaml").read_text())).to_dict()
     assert specs["paper design s0"].to_dict() == default
     for design in ("paper design", "temporal attention", "NPT"):
         runs = [specs[f"{design} s{seed}"].to_dict() for seed in range(5)]
@@ -110,7 +110,7 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address)
 
     with open(out / "ablation.csv") as f:
         rows = {r["method"]: r for r in csv.DictReader(f)}
-    assert set(rows) == {"AniFormer (full)", "cross, shuffle both", "copy-driver"}
+    assert set(rows) == {"AniFormer (full)", "cross, shuffle both", "copy-driver", "static target"}
     splits = json.loads((out / "ablation.json").read_text())["splits"]
     assert {"seen", "unseen"} <= set(splits)
     for row in rows.values():

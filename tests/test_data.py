@@ -92,7 +92,7 @@ def test_heldout_actions_as_a_count_is_seeded():
     assert len(a) == 2 and a == tiny_cfg(heldout_actions=2).resolved_actions()[1]
 
 
-@pytest.mark.parametrize("config", ["tiny.yaml", "default.yaml", "paper.yaml"])
+@pytest.mark.parametrize("config", ["tiny.yaml", "bank.yaml", "paper.yaml"])
 def test_splits_disjoint_and_complete(config):
     cfg = data.data_config(load_config(ROOT / "configs" / config))
     plan = data.plan_bank(cfg)

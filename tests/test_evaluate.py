@@ -71,7 +71,7 @@ def test_copy_driver_pmd_is_known_and_uses_unshuffled_pairs():
 
 
 def test_frames_slice_and_noise_are_deterministic():
-    centre_only = Contender("centre", lambda d, t: d[:, 1:2] + torch.tensor([0.02, 0, 0]), 3, slice(1, 2))
+    centre_only = Contender("centre", lambda d, t, f: d[:, 1:2] + torch.tensor([0.02, 0, 0]), 3, slice(1, 2))
     sampler = FakeSampler(3, "none")
     assert split_pmd(centre_only, sampler, "seen", pairs=6) == pytest.approx(1.0, rel=1e-4)  # (2-1 cm)^2
     a = split_pmd(copy_driver_contender(3), sampler, "seen", pairs=6, noise=0.01, seed=1)
@@ -141,16 +141,16 @@ def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, ca
     printed = capsys.readouterr().out
     splits = ["train", "seen", "unseen", "unseen_drivers", "heldout_actions"]
     rows = list(csv.DictReader((out / "results.csv").open()))
-    assert [r["method"] for r in rows] == ["tiny", "NPT", "regression head", "copy-driver"]
+    assert [r["method"] for r in rows] == ["tiny", "NPT", "regression head", "copy-driver", "static target"]
     assert list(rows[0]) == ["method", *splits]
     assert all(np.isfinite(float(r[s])) and float(r[s]) > 0 for r in rows for s in splits)
     md = (out / "results.md").read_text()
-    for name in ("tiny", "NPT", "regression head", "copy-driver"):
+    for name in ("tiny", "NPT", "regression head", "copy-driver", "static target"):
         assert f"| {name} |" in md
     assert "| method | " + " | ".join(splits) + " |" in md and "noise.png" in md
     assert (out / "noise.png").stat().st_size > 1000
     noise_rows = list(csv.DictReader((out / "noise.csv").open()))
-    assert len(noise_rows) == 4 * 3
+    assert len(noise_rows) == 5 * 3
     assert "results.md" in printed and "MLflow run" in printed
 
     (run,) = mlflow.search_runs(experiment_names=["aniformer"], output_format="list")

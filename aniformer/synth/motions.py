@@ -167,10 +167,10 @@ class _Clip:
         self._set("upperarm01", side, upper)
         self._set("lowerarm01", side, upper @ _rot(_ELBOW_AXIS, torch.as_tensor(elbow) - _ELBOW_REF))
 
-    def leg(self, side: str, flex=0.0, abduct=0.05, knee=0.1, toes=0.0) -> None:
+    def leg(self, side: str, flex=0.0, abduct=0.05, knee=0.1, toes=0.0, internal=0.0) -> None:
         """Thigh, shin and foot; knee bends the shin backwards, toes > 0 points the foot down
         (the foot stays level with the ground otherwise)."""
-        thigh = self._swing(flex, abduct) @ _LEG_BASE
+        thigh = self._swing(flex, abduct, internal) @ _LEG_BASE
         self._set("upperleg01", side, thigh)
         self._set("lowerleg01", side, thigh @ _rot(_KNEE_AXIS, torch.as_tensor(knee) - _KNEE_REF))
         self._set("foot", side, _rot(_X, toes))
@@ -449,13 +449,20 @@ def sample_motion(action: str, seed: int, bone_labels: list[str], frames: int = 
     facing = _rot(_Z, clip.uniform(-0.15, 0.15))
     world = {bone: facing @ rotation for bone, rotation in clip.world.items()}
     translation = clip.translation @ facing[0].T
-    rotvecs = torch.zeros(frames, len(bone_labels), 3, dtype=torch.float64)
-    for bone, parent in CONTROLLED_PARENTS.items():
-        local = world[bone] if parent is None else world[parent].transpose(-1, -2) @ world[bone]
-        rotvecs[:, bone_labels.index(bone)] = roma.rotmat_to_rotvec(local)
     return Motion(
         action=action,
         seed=seed,
-        rotvecs=rotvecs.numpy().astype(np.float32),
+        rotvecs=local_rotvecs(world, bone_labels).numpy().astype(np.float32),
         translation=translation.numpy().astype(np.float32),
     )
+
+
+def local_rotvecs(world: dict[str, torch.Tensor], bone_labels: list[str]) -> torch.Tensor:
+    """``(N, bones, 3)`` local rotation vectors for ``BodyModel.pose`` from the world rotations
+    ``(N, 3, 3)`` of every controlled bone (D = Aₚᵀ A, Aₚ the nearest controlled ancestor's)."""
+    n = next(iter(world.values())).shape[0]
+    rotvecs = torch.zeros(n, len(bone_labels), 3, dtype=torch.float64)
+    for bone, parent in CONTROLLED_PARENTS.items():
+        local = world[bone] if parent is None else world[parent].transpose(-1, -2) @ world[bone]
+        rotvecs[:, bone_labels.index(bone)] = roma.rotmat_to_rotvec(local)
+    return rotvecs
