@@ -65,6 +65,18 @@ def copy_driver_contender(window: int, name: str = "copy-driver") -> Contender:
                      needs_correspondence=True)
 
 
+def transfer_contender(window: int, name: str = "deformation transfer") -> Contender:
+    """The geometric prior alone (aniformer/transfer.py), no learning: needs vertex correspondence."""
+    from aniformer.transfer import deformation_transfer
+
+    def predict(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None) -> torch.Tensor:
+        if faces is None:
+            raise ValueError("deformation transfer needs the pairs' target_faces")
+        return deformation_transfer(driving, target, faces[0] if faces.dim() == 3 else faces)
+
+    return Contender(name, predict, window, slice(None), needs_correspondence=True)
+
+
 def static_target_contender(window: int, name: str = "static target") -> Contender:
     """The target, unmoved: what a model scores if it ignores the driver."""
 

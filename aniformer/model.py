@@ -143,11 +143,11 @@ def instance_norm(x: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
 
 
 class FeatureExtractor(nn.Module):
-    """Table 3: per-vertex MLP (1x1 convs), each layer InstanceNorm + ReLU. `(..., V, 3) -> (..., V, C)`."""
+    """Table 3: per-vertex MLP (1x1 convs), each layer InstanceNorm + ReLU. `(..., V, in_dim) -> (..., V, C)`."""
 
-    def __init__(self, channels: tuple[int, ...]):
+    def __init__(self, channels: tuple[int, ...], in_dim: int = 3):
         super().__init__()
-        widths = (3, *channels)
+        widths = (in_dim, *channels)
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
@@ -253,7 +253,8 @@ class AniFormer(nn.Module):
         super().__init__()
         self.config = config
         feature_dim = config.extractor_channels[-1]
-        self.extractor = FeatureExtractor(config.extractor_channels)
+        # transfer: each driving vertex also carries where the prior moves it (the correction's evidence)
+        self.extractor = FeatureExtractor(config.extractor_channels, 6 if config.output == "transfer" else 3)
         self.target_extractor = FeatureExtractor(config.extractor_channels) if config.attention == "cross" else None
         self.temporal_embedding = nn.Parameter(torch.zeros(config.window, feature_dim))
         nn.init.trunc_normal_(self.temporal_embedding, std=0.02)
@@ -283,7 +284,11 @@ class AniFormer(nn.Module):
         if self.config.output == "transfer" and faces is None:
             raise ValueError("output='transfer' needs the faces of the topology: model(driving, target, faces)")
         checkpointed = self.activation_checkpointing
-        features = run_block(self.extractor, checkpointed, driving) + self.temporal_embedding[:, None, :]  # eq. 1
+        points, prior = driving, None
+        if self.config.output == "transfer":
+            prior = deformation_transfer(driving, target, faces[0] if faces.dim() == 3 else faces)
+            points = torch.cat([driving, prior - driving], dim=-1)
+        features = run_block(self.extractor, checkpointed, points) + self.temporal_embedding[:, None, :]  # eq. 1
         if self.config.attention == "cross":
             memory = features
             x = run_block(self.target_extractor, checkpointed, target).unsqueeze(1).expand(B, T, V2, -1)
@@ -298,9 +303,7 @@ class AniFormer(nn.Module):
             x = x.mean(dim=1, keepdim=True)  # average over the sequence, one output mesh
         if self.config.output == "absolute":
             return 2 * torch.tanh(self.to_xyz(x))
-        base = driving[:, self.config.output_frames()]
-        if self.config.output == "transfer":
-            base = deformation_transfer(base, target, faces[0] if faces.dim() == 3 else faces)
+        base = (driving if prior is None else prior)[:, self.config.output_frames()]
         return base + self.to_xyz(x).to(driving.dtype)
 
     def forward_flops(self, v1: int, v2: int | None = None) -> int:

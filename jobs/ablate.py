@@ -63,6 +63,7 @@ def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: in
         evaluate_table,
         model_contender,
         static_target_contender,
+        transfer_contender,
     )
 
     first = next(iter(specs.values())).data
@@ -85,8 +86,9 @@ def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: in
         table |= evaluate_table([model_contender(row, model)], sampler_for(spec.data.shuffle), splits,
                                 pairs=pairs, seed=seed)
     if ablation.copy_driver:
-        trivial = [copy_driver_contender(first.window), static_target_contender(first.window)]
-        table |= evaluate_table(trivial, sampler_for("none"), splits, pairs=pairs, seed=seed)
+        baselines = [copy_driver_contender(first.window), static_target_contender(first.window),
+                     transfer_contender(first.window)]
+        table |= evaluate_table(baselines, sampler_for("none"), splits, pairs=pairs, seed=seed)
     return table, splits
 
 
@@ -143,7 +145,7 @@ def main(argv: list[str]) -> None:
         table, splits = _evaluate(specs, checkpoints, bank, ablation, seed, pairs)
         notes = [f"Every variant: {first.train.epochs} epochs x {first.data.pairs_per_epoch} pairs, batch "
                  f"{first.train.batch_size}; scored on {pairs} pairs per split (seed {seed}) with the vertex "
-                 "shuffling it was trained with (copy-driver, static target: unshuffled). Variants (overrides of the base config"
+                 "shuffling it was trained with (the baselines: unshuffled). Variants (overrides of the base config"
                  + (f", after `{' '.join(ablation.common)}` for every row" if ablation.common else "") + "):", ""]
         notes += [f"- {row}: `{' '.join(ablation.variants[row]) or '(base config)'}` — "
                   f"{specs[row].model_name}, {parameter_count(specs[row].model_name, specs[row].model):,} parameters, "

@@ -8,11 +8,12 @@
 ``checkpoints/best.pt`` artifact). A checkpoint trained on a stream (``data.source: stream``) is
 scored on the stream's splits, made on the fly (``--topology`` to score on another Anny topology);
 otherwise the bank is ``--bank DIR``, else ``bank/`` beside the checkpoint (where jobs/train.py
-puts it). Rows: the checkpoint, every ``--compare`` model, the copy-driver and the static target
-(the target, unmoved); columns: every split (``--splits`` to choose). ``--noise`` adds a sweep of
-uniform driver noise on one split (``--noise-split``) and plots PMD vs noise. Outputs in ``--out``:
-results.md, results.csv, results.json (+ noise.csv, noise.png), written under a temporary name and
-renamed into place when complete; they and the metrics are logged to the MLflow run
+puts it). Rows: the checkpoint, every ``--compare`` model and the baselines: copy-driver, the static
+target (the target, unmoved) and the deformation transfer alone (aniformer/transfer.py); columns:
+every split (``--splits`` to choose). ``--noise`` adds a sweep of uniform driver noise on one split
+(``--noise-split``) and plots PMD vs noise. Outputs in ``--out``: results.md, results.csv,
+results.json (+ noise.csv, noise.png), written under a temporary name and renamed into place when
+complete; they and the metrics are logged to the MLflow run
 ``evaluate-NAME`` (experiment ``aniformer``) unless ``--no-mlflow``.
 """
 
@@ -50,7 +51,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--noise-split", metavar="SPLIT", help="split of the noise sweep (default: unseen)")
     p.add_argument("--seed", type=int, help="pair seed (default: the checkpoint's data.seed, as in training)")
     p.add_argument("--batch-size", type=int, default=16)
-    p.add_argument("--no-copy-driver", action="store_true", help="leave out the copy-driver and static-target rows")
+    p.add_argument("--no-copy-driver", action="store_true",
+                   help="leave out the baseline rows (copy-driver, static target, deformation transfer)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: cuda if available)")
     p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
     p.add_argument("--no-mlflow", action="store_true", help="do not log to MLflow")
@@ -127,6 +129,7 @@ def main(argv: list[str]) -> None:
         sweep_csv,
         table_csv,
         table_markdown,
+        transfer_contender,
     )
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="aniformer-eval-") as scratch:
@@ -160,12 +163,14 @@ def main(argv: list[str]) -> None:
 
     name = args.name or _default_name(args.checkpoint)
     rows = [(args.name or _model_label(state, model), model)] + [(label, m) for label, m, _, _ in others]
-    labels = [r[0] for r in rows] + ([] if args.no_copy_driver else ["copy-driver", "static target"])
+    baselines = ["copy-driver", "static target", "deformation transfer"]
+    labels = [r[0] for r in rows] + ([] if args.no_copy_driver else baselines)
     if len(set(labels)) != len(labels):
         raise UserError(f"row names must be unique, got {', '.join(labels)}")
     contenders = [model_contender(label, m, device) for label, m in rows]
     if not args.no_copy_driver:  # one topology per bank or stream: driver and target always correspond
-        contenders += [copy_driver_contender(model.config.window), static_target_contender(model.config.window)]
+        contenders += [copy_driver_contender(model.config.window), static_target_contender(model.config.window),
+                       transfer_contender(model.config.window)]
 
     samplers = Samplers(make_sampler, shuffle)
     from tqdm import tqdm

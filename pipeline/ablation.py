@@ -8,7 +8,7 @@ naming one (relative to the ablation config), plus::
     ablation:
       pairs: 500                  # evaluation pairs per split (default: data.eval_pairs)
       splits: [seen, unseen]      # default: every split of the bank
-      copy_driver: true           # add the copy-driver row
+      copy_driver: true           # add the baseline rows: copy-driver, static target, deformation transfer
       common: [model.temporal=embedding]   # overrides applied to every variant first
       variants:                   # row name -> key=value overrides of the base config (as on the CLI)
         regression head: [model.head=regression, loss.motion=0, loss.appearance=0]

@@ -110,7 +110,8 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address)
 
     with open(out / "ablation.csv") as f:
         rows = {r["method"]: r for r in csv.DictReader(f)}
-    assert set(rows) == {"AniFormer (full)", "cross, shuffle both", "copy-driver", "static target"}
+    assert set(rows) == {"AniFormer (full)", "cross, shuffle both", "copy-driver", "static target",
+                         "deformation transfer"}
     splits = json.loads((out / "ablation.json").read_text())["splits"]
     assert {"seen", "unseen"} <= set(splits)
     for row in rows.values():

@@ -141,16 +141,17 @@ def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, ca
     printed = capsys.readouterr().out
     splits = ["train", "seen", "unseen", "unseen_drivers", "heldout_actions"]
     rows = list(csv.DictReader((out / "results.csv").open()))
-    assert [r["method"] for r in rows] == ["tiny", "NPT", "regression head", "copy-driver", "static target"]
+    assert [r["method"] for r in rows] == ["tiny", "NPT", "regression head", "copy-driver", "static target",
+                                           "deformation transfer"]
     assert list(rows[0]) == ["method", *splits]
     assert all(np.isfinite(float(r[s])) and float(r[s]) > 0 for r in rows for s in splits)
     md = (out / "results.md").read_text()
-    for name in ("tiny", "NPT", "regression head", "copy-driver", "static target"):
+    for name in ("tiny", "NPT", "regression head", "copy-driver", "static target", "deformation transfer"):
         assert f"| {name} |" in md
     assert "| method | " + " | ".join(splits) + " |" in md and "noise.png" in md
     assert (out / "noise.png").stat().st_size > 1000
     noise_rows = list(csv.DictReader((out / "noise.csv").open()))
-    assert len(noise_rows) == 5 * 3
+    assert len(noise_rows) == 6 * 3
     assert "results.md" in printed and "MLflow run" in printed
 
     (run,) = mlflow.search_runs(experiment_names=["aniformer"], output_format="list")
