@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from aniformer.metrics import PMD_SCALE, pmd
+from aniformer.metrics import PMD_SCALE, pmd_per_frame
 
 Predict = Callable[[torch.Tensor, torch.Tensor, torch.Tensor | None], torch.Tensor]
 
@@ -90,25 +90,32 @@ def _noise_rng(seed: int, split: str, level: float, lo: int) -> np.random.Genera
     return np.random.default_rng([int(seed), zlib.crc32(split.encode()), int(round(level * 1e9)), int(lo)])
 
 
-def split_pmd(contender: Contender, sampler, split: str, *, pairs: int, batch_size: int = 16,
-              noise: float = 0.0, seed: int = 0, epoch: int = 0) -> float:
-    """Mean PMD x1e4 of ``contender`` over ``pairs`` pairs of ``split`` (pair i is the same for every
-    contender with the same window and sampler seed)."""
-    total, count = 0.0, 0
+def pair_pmds(contenders: Sequence[Contender], sampler, split: str, *, pairs: int, batch_size: int = 16,
+              noise: float = 0.0, seed: int = 0, epoch: int = 0) -> dict[str, np.ndarray]:
+    """{contender name: PMD x1e4 of each of ``pairs`` pairs of ``split``}: every batch is made once
+    and scored by all ``contenders`` (pair i is the same for every contender with the same window
+    and sampler seed)."""
+    scores: dict[str, list[np.ndarray]] = {c.name: [] for c in contenders}
     for lo in range(0, pairs, batch_size):
         batch = sampler.batch(split, epoch, np.arange(lo, min(pairs, lo + batch_size)), n=pairs)
         driving = batch["driving"]
         if noise > 0:
             driving = driving + _noise_rng(seed, split, noise, lo).uniform(-noise, noise, driving.shape).astype(np.float32)
         faces = batch.get("target_faces")
-        pred = contender.predict(torch.from_numpy(np.ascontiguousarray(driving)), torch.from_numpy(batch["target"]),
-                                 None if faces is None else torch.from_numpy(faces))
-        gt = torch.from_numpy(batch["ground_truth"])[:, contender.frames]
-        if pred.shape != gt.shape:
-            raise ValueError(f"{contender.name}: prediction {tuple(pred.shape)} vs ground truth {tuple(gt.shape)}")
-        total += pmd(pred.float(), gt).item() * len(pred)
-        count += len(pred)
-    return total / max(count, 1) * PMD_SCALE
+        inputs = (torch.from_numpy(np.ascontiguousarray(driving)), torch.from_numpy(batch["target"]),
+                  None if faces is None else torch.from_numpy(faces))
+        for c in contenders:
+            pred = c.predict(*inputs)
+            gt = torch.from_numpy(batch["ground_truth"])[:, c.frames]
+            if pred.shape != gt.shape:
+                raise ValueError(f"{c.name}: prediction {tuple(pred.shape)} vs ground truth {tuple(gt.shape)}")
+            scores[c.name].append(pmd_per_frame(pred.float(), gt).mean(-1).double().numpy() * PMD_SCALE)
+    return {name: np.concatenate(values) for name, values in scores.items()}
+
+
+def split_pmd(contender: Contender, sampler, split: str, **kwargs) -> float:
+    """Mean PMD x1e4 of ``contender`` over the pairs of ``split`` (the arguments of ``pair_pmds``)."""
+    return float(pair_pmds([contender], sampler, split, **kwargs)[contender.name].mean())
 
 
 class Samplers:
@@ -117,27 +124,42 @@ class Samplers:
     def __init__(self, make: Callable[[int, str], object], shuffle: str):
         self.make, self.shuffle, self._cache = make, shuffle, {}
 
+    def key(self, contender: Contender) -> tuple[int, str]:
+        return contender.window, "none" if contender.needs_correspondence else self.shuffle
+
     def for_contender(self, contender: Contender):
-        key = (contender.window, "none" if contender.needs_correspondence else self.shuffle)
+        key = self.key(contender)
         if key not in self._cache:
             self._cache[key] = self.make(*key)
         return self._cache[key]
 
 
+def evaluate_pairs(contenders: Sequence[Contender], samplers: Samplers, splits: Sequence[str], *, pairs: int,
+                   batch_size: int = 16, seed: int = 0, noise: float = 0.0,
+                   progress: Callable[[str, str], None] | None = None) -> dict[str, dict[str, np.ndarray]]:
+    """{contender name: {split: PMD x1e4 per pair}}; contenders that take the same pairs share them."""
+    groups: dict[tuple, list[Contender]] = {}
+    for c in contenders:
+        groups.setdefault(samplers.key(c), []).append(c)
+    scores: dict[str, dict[str, np.ndarray]] = {c.name: {} for c in contenders}
+    for group in groups.values():
+        sampler = samplers.for_contender(group[0])
+        for split in splits:
+            values = pair_pmds(group, sampler, split, pairs=pairs, batch_size=batch_size, noise=noise, seed=seed)
+            for c in group:
+                scores[c.name][split] = values[c.name]
+                if progress is not None:
+                    progress(c.name, split)
+    return scores
+
+
 def evaluate_table(contenders: Sequence[Contender], samplers: Samplers, splits: Sequence[str], *, pairs: int,
                    batch_size: int = 16, seed: int = 0, noise: float = 0.0,
                    progress: Callable[[str, str], None] | None = None) -> dict[str, dict[str, float]]:
-    """{contender name: {split: PMD x1e4}}."""
-    table: dict[str, dict[str, float]] = {}
-    for c in contenders:
-        sampler = samplers.for_contender(c)
-        table[c.name] = {}
-        for split in splits:
-            table[c.name][split] = split_pmd(c, sampler, split, pairs=pairs, batch_size=batch_size,
-                                             noise=noise, seed=seed)
-            if progress is not None:
-                progress(c.name, split)
-    return table
+    """{contender name: {split: mean PMD x1e4}}."""
+    scores = evaluate_pairs(contenders, samplers, splits, pairs=pairs, batch_size=batch_size, seed=seed, noise=noise,
+                            progress=progress)
+    return {name: {split: float(v.mean()) for split, v in row.items()} for name, row in scores.items()}
 
 
 def noise_sweep(contenders: Sequence[Contender], samplers: Samplers, split: str, levels: Sequence[float], *,

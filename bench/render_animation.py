@@ -32,7 +32,8 @@ def main(samples: str, animation: str, png: str) -> None:
     shown = np.linspace(0, len(driving) - 1, 8).round().astype(int)
     rows = [("driver", driving[shown], faces), ("target", np.repeat(target[None], len(shown), 0), faces),
             ("result", result[shown], faces), ("ground truth", truth[shown], faces)]
-    motion = json.loads((samples / "export.json").read_text())["motion"]["name"]
+    info = json.loads((samples / "export.json").read_text())
+    motion = info["motion"]["name"] if "motion" in info else f"{info['split']} pair {info['pair']} (stream)"
     render_filmstrip([(label, center_bbox(v), f) for label, v, f in rows], png, frames=len(shown),
                      title=f"{motion}: driver / target / result / ground truth (frames {', '.join(map(str, shown))})")
     def error(meshes: np.ndarray) -> float:

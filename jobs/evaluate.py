@@ -121,7 +121,7 @@ def main(argv: list[str]) -> None:
     from aniformer.evaluate import (
         Samplers,
         copy_driver_contender,
-        evaluate_table,
+        evaluate_pairs,
         model_contender,
         noise_sweep,
         plot_sweep,
@@ -177,8 +177,11 @@ def main(argv: list[str]) -> None:
 
     steps = len(contenders) * (len(splits) + (len(levels) if levels else 0))
     bar = tqdm(total=steps, unit="split", desc="evaluate", disable=args.no_progress, file=sys.stderr)
-    table = evaluate_table(contenders, samplers, splits, pairs=pairs, batch_size=args.batch_size, seed=seed,
-                           progress=lambda *_: bar.update(1))
+    scores = evaluate_pairs(contenders, samplers, splits, pairs=pairs, batch_size=args.batch_size, seed=seed,
+                            progress=lambda *_: bar.update(1))
+    table = {name: {split: float(v.mean()) for split, v in row.items()} for name, row in scores.items()}
+    spread = {name: {split: float(v.std(ddof=1)) if len(v) > 1 else float("nan") for split, v in row.items()}
+              for name, row in scores.items()}
     sweep = None
     if levels is not None:
         sweep = noise_sweep(contenders, samplers, noise_split, levels, pairs=pairs, batch_size=args.batch_size,
@@ -190,13 +193,14 @@ def main(argv: list[str]) -> None:
                  f"'{shuffle}'; copy-driver on the same pairs unshuffled). Checkpoint: {args.checkpoint} "
                  f"(epoch {state.get('epoch')}); data: {data_label}.")
     markdown = table_markdown(table, splits, descriptions, notes=notes)
+    markdown += "\n" + table_markdown(spread, splits, title="Standard deviation of PMD over the pairs of each split")
     if sweep is not None:
         markdown += (f"\n**PMD (×10⁻⁴) vs uniform driver noise (± m), split `{noise_split}`**\n\n"
                      + table_markdown({k: {f"{lv:g}": v for lv, v in row.items()} for k, row in sweep.items()},
                                       [f"{lv:g}" for lv in levels], title=None)
                      + "\n![PMD vs noise](noise.png)\n")
     result = {"checkpoint": args.checkpoint, "data": data_label, "pairs": pairs, "seed": seed,
-              "splits": splits, "table": table, "seconds": seconds,
+              "splits": splits, "table": table, "pair_sd": spread, "seconds": seconds,
               "noise": None if sweep is None else {"split": noise_split,
                                                    "pmd": {k: {f"{lv:g}": v for lv, v in row.items()}
                                                            for k, row in sweep.items()}}}

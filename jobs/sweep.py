@@ -52,6 +52,7 @@ def main(argv: list[str]) -> None:
 
     connect()
     manifest, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
+    vertices = int(manifest["num_vertices"]) if manifest else int(faces.max()) + 1  # a stream: its topology's
     restore = experiment_exists(out, name)
     parent = start_job_run(name, {**spec.to_dict(), "sweep": sweep.to_dict()}, experiment=args.experiment)
     parent.set_tags({"kind": "sweep", "sweep.search": sweep.search,
@@ -61,7 +62,7 @@ def main(argv: list[str]) -> None:
     try:
         print(("restoring" if restore else "starting") + f" sweep {name} in {out / 'tune' / name}", flush=True)
         tuner = build_tuner(base, sweep, sweep_name=name, out=out, bank=bank, experiment=args.experiment,
-                            parent_run_id=parent.run_id, faces=faces, vertices=int(manifest["num_vertices"]),
+                            parent_run_id=parent.run_id, faces=faces, vertices=vertices,
                             restore=restore)
         results = tuner.fit()
         unfinished = unfinished_trials(out / "tune" / name, sweep.num_samples)

@@ -1,4 +1,10 @@
-"""Synthetic training data with Ray Data: the mesh bank, its Parquet shards, and pairs per epoch.
+"""Training data with Ray Data: pairs made on the fly, or a mesh bank in Parquet shards, and pairs per epoch.
+
+A run's pairs come from ``pair_source``: with ``data.source: stream`` (the default configs) every pair
+is made on the fly by ``aniformer.synth.stream.StreamPairs`` inside the Ray Data tasks (fresh bodies,
+smooth motion over the whole pose space; no bank, nothing on disk); with ``data.source: bank`` they
+are assembled from a mesh bank, the format below, which also holds imported mesh sequences
+(DFAUST-like data, ``import_mesh_sequences``).
 
 The mesh bank
 -------------
