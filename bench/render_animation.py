@@ -1,9 +1,9 @@
-"""Render an animation result beside its inputs and ground truth (docs/animate_unseen.png).
+"""Render an animation result beside its inputs and ground truth (docs/animate_walk.png).
 
-    python jobs/export_meshes.py --bank runs/default/bank --split unseen --out samples/unseen
-    python jobs/animate.py --checkpoint runs/default/best.pt --target samples/unseen/target.obj \\
-        --driving samples/unseen/driving --out anim/unseen
-    python bench/render_animation.py samples/unseen anim/unseen docs/animate_unseen.png
+    python jobs/export_meshes.py --stream notoes_collapse3pc --split locomotion --out samples/walk
+    python jobs/animate.py --checkpoint runs/default/best.pt --target samples/walk/target.obj \\
+        --driving samples/walk/driving --out anim/walk
+    python bench/render_animation.py samples/walk anim/walk docs/animate_walk.png
 
 Rows: driver, target, result, ground truth at 8 evenly spaced frames, each mesh bounding-box
 centred; prints the sequence's PMD (x1e-4) of result vs ground truth, against copying the driver

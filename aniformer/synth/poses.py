@@ -34,7 +34,18 @@ import numpy as np
 import roma
 import torch
 
-from aniformer.synth.motions import _EYE, _X, _Y, _Z, ACTIONS, _Clip, _rot, local_rotvecs, sample_motion
+from aniformer.synth.motions import (
+    _EYE,
+    _X,
+    _Y,
+    _Z,
+    ACTIONS,
+    CONTROLLED_PARENTS,
+    _Clip,
+    _rot,
+    local_rotvecs,
+    sample_motion,
+)
 
 FAMILIES: tuple[str, ...] = ("random", "bend", "crouch", "locomotion", "library", "blend", "kick")
 ORIENTATIONS: tuple[str, ...] = ("upright", "tilted", "any")
@@ -222,15 +233,8 @@ def _library(rngs, T: int, bone_labels, actions: Sequence[str]):
 
 def _clip_rotvecs(clip: _Clip, bone_labels) -> torch.Tensor:
     identity = _EYE.expand(clip.frames, 3, 3)
-    world = {bone: clip.world.get(bone, identity) for bone in _controlled()}
+    world = {bone: clip.world.get(bone, identity) for bone in CONTROLLED_PARENTS}
     return local_rotvecs(world, list(bone_labels))
-
-
-@functools.cache
-def _controlled() -> tuple[str, ...]:
-    from aniformer.synth.motions import CONTROLLED_PARENTS
-
-    return tuple(CONTROLLED_PARENTS)
 
 
 def _orientations(rngs, modes: Sequence[str], T: int) -> torch.Tensor:

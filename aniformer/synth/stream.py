@@ -199,9 +199,6 @@ class StreamPairs:
             raise UserError(f"unknown split {name!r}; known: {', '.join(SPLITS)}")
         return SPLITS[name]
 
-    def descriptions(self) -> dict[str, str]:
-        return {name: s.description for name, s in SPLITS.items()}
-
     def default_pairs(self, split: str) -> int:
         return self.pairs_per_epoch if split == "train" else self.eval_pairs
 
@@ -245,8 +242,3 @@ class StreamPairs:
             "index": idx,
             "epoch": np.full(B, epoch, np.int64),
         }
-
-    def iter_batches(self, split: str, epoch: int = 0, batch_size: int = 32, n: int | None = None):
-        total = self.default_pairs(split) if n is None else n
-        for lo in range(0, total, batch_size):
-            yield self.batch(split, epoch, np.arange(lo, min(total, lo + batch_size)))
