@@ -72,7 +72,7 @@ def transfer_contender(window: int, name: str = "deformation transfer") -> Conte
     def predict(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None) -> torch.Tensor:
         if faces is None:
             raise ValueError("deformation transfer needs the pairs' target_faces")
-        return deformation_transfer(driving, target, faces[0] if faces.dim() == 3 else faces)
+        return deformation_transfer(driving, target, faces)
 
     return Contender(name, predict, window, slice(None), needs_correspondence=True)
 

@@ -286,7 +286,7 @@ class AniFormer(nn.Module):
         checkpointed = self.activation_checkpointing
         points, prior = driving, None
         if self.config.output == "transfer":
-            prior = deformation_transfer(driving, target, faces[0] if faces.dim() == 3 else faces)
+            prior = deformation_transfer(driving, target, faces)
             points = torch.cat([driving, prior - driving], dim=-1)
         features = run_block(self.extractor, checkpointed, points) + self.temporal_embedding[:, None, :]  # eq. 1
         if self.config.attention == "cross":

@@ -45,12 +45,13 @@ def _topology(faces_bytes: bytes, num_faces: int, num_vertices: int) -> tuple[to
 
 def deformation_transfer(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """The target mesh in the pose of each driving frame: ``driving (B, T, V, 3)``, ``target (B, V, 3)``,
-    ``faces (F, 3)`` shared by both -> ``(B, T, V, 3)``, bounding-box centred, in the driving dtype."""
+    ``faces (F, 3)`` shared by both (or a batch's ``(B, F, 3)`` of one topology) -> ``(B, T, V, 3)``,
+    bounding-box centred, in the driving dtype."""
     B, T, V, _ = driving.shape
     if target.shape[-2] != V:
         raise ValueError(f"deformation transfer needs driver and target of one topology; got {V} and "
                          f"{target.shape[-2]} vertices")
-    faces = faces.detach().to("cpu", torch.int64).contiguous()
+    faces = (faces[0] if faces.dim() == 3 else faces).detach().to("cpu", torch.int64).contiguous()
     i, j, factor = _topology(faces.numpy().tobytes(), len(faces), V)
     device = driving.device
     i, j, factor = i.to(device), j.to(device), factor.to(device)

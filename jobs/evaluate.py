@@ -256,12 +256,10 @@ def _bank_source(args, ckpt_path: Path, data_cfg: dict, center: str, seed: int, 
     manifest = read_manifest(bank_dir)
     known = list(SPLITS)  # the pipeline's order (train, seen, unseen, ...), then any others of the bank
     all_splits = sorted(manifest["splits"], key=lambda s: (known.index(s) if s in known else len(known), s))
-    if args.splits:
-        empty = [s for s in args.splits.split(",") if s.strip() in manifest["splits"]
-                 and not (manifest["splits"][s.strip()]["motions"] and manifest["splits"][s.strip()]["targets"])]
-        if empty:
-            raise UserError(f"--splits: split(s) {', '.join(empty)} are empty in this bank")
     splits = [s for s in all_splits if manifest["splits"][s]["motions"] and manifest["splits"][s]["targets"]]
+    empty = [s.strip() for s in (args.splits or "").split(",") if s.strip() in all_splits and s.strip() not in splits]
+    if empty:
+        raise UserError(f"--splits: split(s) {', '.join(empty)} are empty in this bank")
     made = manifest.get("config", {})
     notes = []
     differs = [k for k in GENERATION_FIELDS if k in data_cfg and k in made and made[k] != data_cfg[k]]
