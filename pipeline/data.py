@@ -537,7 +537,9 @@ def _finish_bank(out_dir: Path, manifest: dict, faces: np.ndarray, shards: list[
     manifest = dict(manifest)
     manifest["shards"] = sorted(shards, key=lambda s: s["path"])
     manifest["counts"] = dict(manifest["counts"], shards=len(shards), faces=int(len(faces)))
-    _write_file(out_dir / FACES, _npy_bytes(np.asarray(faces, np.int64)))
+    faces_bytes = _npy_bytes(np.asarray(faces, np.int64))
+    manifest["faces_sha256"] = hashlib.sha256(faces_bytes).hexdigest()
+    _write_file(out_dir / FACES, faces_bytes)
     _write_json(out_dir / MANIFEST, manifest)  # last: a bank with a manifest is complete
     return manifest
 
@@ -926,19 +928,176 @@ def _check_user_int(name, value, low):
 
 
 def read_manifest(bank_dir: str | os.PathLike) -> dict:
-    """The manifest of a bank directory; `UserError` with one line if missing or incompatible."""
+    """The manifest of a bank directory, its schema checked (`validate_manifest`); `UserError` with one
+    line naming the file if it is missing, unreadable, incompatible or inconsistent."""
     path = Path(bank_dir) / MANIFEST
     if not path.is_file():
         raise UserError(f"{bank_dir}: not a mesh bank (no {MANIFEST}); make one with jobs/generate_data.py")
     try:
         manifest = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise UserError(f"{path}: unreadable manifest ({e})") from None
+    if not isinstance(manifest, dict):
+        raise UserError(f"{path}: not a bank manifest (a JSON {type(manifest).__name__}, not an object)")
     if manifest.get("schema_version") != SCHEMA_VERSION:
         raise UserError(
             f"{path}: schema version {manifest.get('schema_version')!r}, this code reads {SCHEMA_VERSION}; regenerate the bank"
         )
+    validate_manifest(manifest, path)
     return manifest
+
+
+_REQUIRED = {"kind": str, "topology": str, "num_vertices": int, "faces": str, "counts": dict, "identities": list,
+             "motions": list, "sequences": dict, "splits": dict, "shards": list}
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
+def _is_int(value, low: int = 0) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
+def validate_manifest(manifest: dict, path: str | os.PathLike = MANIFEST) -> None:
+    """`UserError` (one line naming `path`) unless the manifest is one this code can read safely: every
+    key present with its type, ids in range, the sequences' rows consecutive and the shards covering
+    them exactly, each shard with a SHA-256, file paths inside the bank. The shards themselves are
+    checked against it as they are read (`load_bank`)."""
+
+    def bad(problem: str):
+        raise UserError(f"{path}: {problem}; regenerate the bank (or restore its manifest)")
+
+    missing = [k for k in _REQUIRED if k not in manifest]
+    if missing:
+        bad(f"missing key(s) {', '.join(missing)}")
+    wrong = [f"{k} ({type(manifest[k]).__name__}, not {t.__name__})" for k, t in _REQUIRED.items()
+             if not isinstance(manifest[k], t) or (t is int and isinstance(manifest[k], bool))]
+    if wrong:
+        bad(f"wrong type of {', '.join(wrong)}")
+    if manifest["num_vertices"] < 3:
+        bad(f"num_vertices {manifest['num_vertices']} < 3")
+    if manifest.get("kind") == "synthetic" and not isinstance(manifest.get("config"), dict):
+        bad("a synthetic bank without its config")
+    identities, motions = manifest["identities"], manifest["motions"]
+    n_ident, n_motion = len(identities), len(motions)
+    for i, ident in enumerate(identities):
+        if not isinstance(ident, dict) or ident.get("id") != i or not isinstance(ident.get("name"), str):
+            bad(f"identities[{i}] is not {{id: {i}, name: ...}}")
+    for i, motion in enumerate(motions):
+        if (not isinstance(motion, dict) or motion.get("id") != i or not isinstance(motion.get("name"), str)
+                or not _is_int(motion.get("driver")) or motion["driver"] >= n_ident
+                or not _is_int(motion.get("frames"), 1)):
+            bad(f"motions[{i}] is not {{id: {i}, name, driver < {n_ident}, frames >= 1}}")
+    seqs = manifest["sequences"]
+    columns = ("identity", "motion", "frames", "first_row")
+    if any(not isinstance(seqs.get(c), list) for c in columns) or len({len(seqs[c]) for c in columns}) != 1:
+        bad(f"sequences must hold lists {', '.join(columns)} of one length")
+    if not all(all(_is_int(v) for v in seqs[c]) for c in columns):
+        bad("sequences hold a value that is not a non-negative integer")
+    if any(i >= n_ident for i in seqs["identity"]) or any(m >= n_motion for m in seqs["motion"]):
+        bad(f"a sequence names an identity >= {n_ident} or a motion >= {n_motion}")
+    if any(f != motions[m]["frames"] for f, m in zip(seqs["frames"], seqs["motion"], strict=True)):
+        bad("a sequence's frame count differs from its motion's")
+    if len(set(zip(seqs["identity"], seqs["motion"], strict=True))) != len(seqs["identity"]):
+        bad("two sequences of one identity and motion")
+    rows = int(sum(seqs["frames"]))
+    expected_first = np.concatenate([[0], np.cumsum(seqs["frames"])[:-1]]).astype(int).tolist() if rows else []
+    if seqs["first_row"] != expected_first:
+        bad("sequences.first_row is not the running sum of sequences.frames")
+    meshes = manifest["counts"].get("meshes")
+    if meshes != rows:
+        bad(f"counts.meshes is {meshes!r} but the sequences hold {rows} frames")
+    for name, split in manifest["splits"].items():
+        if (not isinstance(split, dict) or not isinstance(split.get("motions"), list)
+                or not isinstance(split.get("targets"), list)
+                or not all(_is_int(m) and m < n_motion for m in split["motions"])
+                or not all(_is_int(t) and t < n_ident for t in split["targets"])):
+            bad(f"split {name!r} is not {{motions: [ids < {n_motion}], targets: [ids < {n_ident}]}}")
+    covered = 0
+    for k, shard in enumerate(sorted(manifest["shards"], key=lambda sh: sh.get("first_row", -1)
+                                     if isinstance(sh, dict) else -1)):
+        if (not isinstance(shard, dict) or not isinstance(shard.get("path"), str)
+                or not _is_int(shard.get("rows"), 1) or not _is_int(shard.get("first_row"))
+                or not _is_int(shard.get("bytes"), 1)):
+            bad(f"shard {k} is not {{path, rows >= 1, first_row, bytes, sha256}}")
+        if not isinstance(shard.get("sha256"), str) or not _SHA256.fullmatch(shard["sha256"]):
+            bad(f"shard {shard['path']} has no SHA-256 digest")
+        if shard["first_row"] != covered:
+            bad(f"shard {shard['path']} starts at row {shard['first_row']}, expected {covered}")
+        covered += shard["rows"]
+        bank_file(Path(path).parent, shard["path"], "shard")
+    if covered != rows:
+        bad(f"the shards hold {covered} rows but the sequences {rows}")
+    bank_file(Path(path).parent, manifest["faces"], "faces")
+    if "faces_sha256" in manifest and not (isinstance(manifest["faces_sha256"], str)
+                                           and _SHA256.fullmatch(manifest["faces_sha256"])):
+        bad("faces_sha256 is not a SHA-256 digest")
+
+
+def bank_file(bank_dir: str | os.PathLike, relative: str, what: str) -> Path:
+    """`bank_dir / relative`, refused in one line if it leads outside the bank (an absolute path, a
+    `..` component, or a symlink out): a manifest must not make a job read or overwrite other files."""
+    bank_dir = Path(bank_dir)
+    parts = Path(relative).parts
+    path = bank_dir / relative
+    if (not relative or os.path.isabs(relative) or ".." in parts or "\0" in relative
+            or not path.resolve().is_relative_to(bank_dir.resolve())):
+        raise UserError(f"{bank_dir / MANIFEST}: {what} path {relative!r} leads outside the bank; refused")
+    return path
+
+
+def _read_file(path: Path, what: str) -> bytes:
+    if not path.is_file():
+        raise UserError(f"{path}: {what} missing from the bank")
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise UserError(f"{path}: unreadable {what} ({e.strerror})") from None
+
+
+def _check_digest(path: Path, payload: bytes, sha256: str, size: int | None) -> None:
+    if hashlib.sha256(payload).hexdigest() != sha256:
+        sizes = f"; {len(payload):,} bytes, the manifest says {size:,}" if size not in (None, len(payload)) else ""
+        raise UserError(f"{path}: SHA-256 differs from the manifest (corrupt, truncated or modified{sizes}); "
+                        "regenerate the bank or restore the file")
+
+
+def read_faces(bank_dir: str | os.PathLike, manifest: dict, verify: bool = True) -> np.ndarray:
+    """The bank's ``(F, 3)`` int64 faces, checked: inside the bank, a plain ``.npy`` of vertex indices in
+    ``[0, num_vertices)``, and (``verify``, banks that record it) its SHA-256."""
+    path = bank_file(bank_dir, manifest["faces"], "faces")
+    payload = _read_file(path, "faces file")
+    if verify and "faces_sha256" in manifest:
+        _check_digest(path, payload, manifest["faces_sha256"], None)
+    try:
+        faces = np.load(io.BytesIO(payload), allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise UserError(f"{path}: not a readable .npy of faces ({type(e).__name__})") from None
+    V = manifest["num_vertices"]
+    if (not isinstance(faces, np.ndarray) or faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0
+            or faces.dtype.kind not in "iu" or faces.min() < 0 or faces.max() >= V):
+        raise UserError(f"{path}: faces must be (F, 3) integer indices in [0, {V}), got "
+                        f"{getattr(faces, 'shape', '?')} {getattr(faces, 'dtype', '')}")
+    return faces.astype(np.int64, copy=False)
+
+
+def _read_shard(path: Path, payload: bytes, shard: dict, num_vertices: int):
+    """The Parquet table of one shard's bytes, its layout checked against the manifest."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        table = pq.read_table(pa.BufferReader(payload), columns=["sequence", "identity", "motion", "frame", "vertices"])
+    except (pa.ArrowException, OSError, ValueError, KeyError) as e:
+        first = (str(e).splitlines() or [type(e).__name__])[0]
+        raise UserError(f"{path}: unreadable shard ({type(e).__name__}: {first[:200]}); regenerate the bank") from None
+    kind = table.schema.field("vertices").type
+    if not pa.types.is_fixed_size_list(kind) or kind.value_type != pa.float32():
+        raise UserError(f"{path}: vertices column is {kind}, expected fixed_size_list<float32>")
+    if kind.list_size != num_vertices * 3:
+        raise UserError(f"{path}: holds meshes of {kind.list_size // 3} vertices ({kind.list_size} values), "
+                        f"the manifest says num_vertices {num_vertices}")
+    if table.num_rows != shard["rows"]:
+        raise UserError(f"{path}: {table.num_rows} rows, manifest says {shard['rows']}")
+    return table
 
 
 @dataclasses.dataclass
@@ -963,32 +1122,41 @@ class Bank:
         raise KeyError(f"the bank holds no sequence of identity {identity} performing motion {motion}")
 
 
-def load_bank(bank_dir: str | os.PathLike, verify: bool = False) -> Bank:
-    """Read every shard of a bank into one array (``verify`` also checks the SHA-256 digests)."""
-    import pyarrow.parquet as pq
-
+def load_bank(bank_dir: str | os.PathLike, verify: bool = True) -> Bank:
+    """Read every shard of a bank into one array, each checked as it is read: its SHA-256 against the
+    manifest's (``verify``, the default; each file is read once, the digest costs about 0.1 s per
+    100 MB, see docs/benchmarks.md), its vertex count, rows, and the sequence, identity, motion and
+    frame of every row.
+    Any failure is one `UserError` line naming the file."""
     bank_dir = Path(bank_dir)
     manifest = read_manifest(bank_dir)
     V = manifest["num_vertices"]
-    faces = np.load(bank_dir / manifest["faces"], allow_pickle=False)
+    faces = read_faces(bank_dir, manifest, verify)
+    seqs = manifest["sequences"]
     total = manifest["counts"]["meshes"]
+    frames = np.asarray(seqs["frames"], np.int64)
+    expected = {"sequence": np.repeat(np.arange(len(frames), dtype=np.int64), frames),
+                "identity": np.repeat(np.asarray(seqs["identity"], np.int64), frames),
+                "motion": np.repeat(np.asarray(seqs["motion"], np.int64), frames),
+                "frame": np.arange(total, dtype=np.int64) - np.repeat(np.asarray(seqs["first_row"], np.int64), frames)}
     vertices = np.empty((total, V, 3), np.float32)
     flat = vertices.reshape(-1)
     for shard in manifest["shards"]:
-        path = bank_dir / shard["path"]
-        if not path.is_file():
-            raise UserError(f"{path}: shard missing from the bank")
-        if verify and hashlib.sha256(path.read_bytes()).hexdigest() != shard["sha256"]:
-            raise UserError(f"{path}: SHA-256 differs from the manifest (corrupt or modified shard)")
-        table = pq.read_table(path, columns=["vertices"])
-        if table.num_rows != shard["rows"]:
-            raise UserError(f"{path}: {table.num_rows} rows, manifest says {shard['rows']}")
-        pos = shard["first_row"] * V * 3
+        path = bank_file(bank_dir, shard["path"], "shard")
+        payload = _read_file(path, "shard")
+        if verify:
+            _check_digest(path, payload, shard["sha256"], shard["bytes"])
+        table = _read_shard(path, payload, shard, V)
+        lo, hi = shard["first_row"], shard["first_row"] + shard["rows"]
+        if not all(np.array_equal(table.column(k).to_numpy(), v[lo:hi]) for k, v in expected.items()):
+            raise UserError(f"{path}: its rows are not the sequences and frames the manifest places at rows "
+                            f"{lo}-{hi - 1}; regenerate the bank")
+        pos = lo * V * 3
         for chunk in table.column("vertices").chunks:
             values = chunk.flatten().to_numpy(zero_copy_only=False)
             flat[pos : pos + len(values)] = values
             pos += len(values)
-    return Bank(manifest=manifest, faces=faces.astype(np.int64, copy=False), vertices=vertices)
+    return Bank(manifest=manifest, faces=faces, vertices=vertices)
 
 
 def check_bank_matches(manifest: dict, cfg: DataConfig) -> None:
@@ -1005,7 +1173,11 @@ def check_bank_matches(manifest: dict, cfg: DataConfig) -> None:
 def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool) -> tuple[dict | None, np.ndarray]:
     """(manifest, faces) of the bank a job trains on: checked against ``cfg`` if it exists, else
     generated there when ``generate`` (the job's own ``OUT/bank``), else a `UserError`. A stream
-    needs no bank: (None, the topology's faces)."""
+    needs no bank: (None, the topology's faces).
+
+    Generation is staged (``cli.staged_output_dir``): the bank appears complete or not at all, and a
+    killed job's staging directory is removed by the next one. A bank directory holding only what an
+    unstaged generation leaves (shards, faces, no manifest) is taken as incomplete and regenerated."""
     if cfg.source == "stream":
         return None, pair_source(cfg, bank_dir).faces
     bank_dir = Path(bank_dir)
@@ -1013,11 +1185,20 @@ def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool
         manifest = read_manifest(bank_dir)
         check_bank_matches(manifest, cfg)
     elif generate:
-        print(f"generating the mesh bank into {bank_dir} ...", flush=True)
-        manifest = generate_bank(cfg, bank_dir)
+        from aniformer.cli import staged_output_dir
+
+        leftovers = sorted(p.name for p in bank_dir.iterdir()) if bank_dir.is_dir() else []
+        incomplete = bool(leftovers) and all(n in (SHARD_DIR, FACES) or n.startswith(".") for n in leftovers)
+        if leftovers and not incomplete:
+            raise UserError(f"{bank_dir} is not empty and holds no mesh bank ({MANIFEST} missing); "
+                            "move it away or pass --bank DIR")
+        print(f"generating the mesh bank into {bank_dir}"
+              + (" (replacing an incomplete one) ..." if incomplete else " ..."), flush=True)
+        with staged_output_dir(bank_dir, overwrite=incomplete) as tmp:
+            manifest = generate_bank(cfg, tmp)
     else:
         raise UserError(f"--bank {bank_dir}: no mesh bank there (make one with jobs/generate_data.py)")
-    return manifest, np.load(bank_dir / manifest["faces"], allow_pickle=False)
+    return manifest, read_faces(bank_dir, manifest)
 
 
 # --------------------------------------------------------------------------------------------
