@@ -120,10 +120,13 @@ class RunJobParser(ArgumentParser):
 
     @staticmethod
     def locations(args: argparse.Namespace) -> tuple[Path, str, Path]:
-        """(out, job name, bank) of parsed arguments; `out` is created, the name checked."""
+        """(out, job name, bank) of parsed arguments; `out` is created and locked for this job
+        (`files.lock_output`: a second job on it is refused), the name checked."""
+        from aniformer.files import lock_output
+
         out = Path(args.out).expanduser().resolve()
         name = job_name(args.name or out.name)
-        out.mkdir(parents=True, exist_ok=True)
+        lock_output(out)
         return out, name, Path(args.bank).expanduser().resolve() if args.bank else out / "bank"
 
 
@@ -136,10 +139,13 @@ def job_name(name: str) -> str:
 
 
 def check_output_dir(out: Path, overwrite: bool) -> None:
-    """Refuse an `--out` that is a file, or a non-empty directory unless `overwrite`."""
+    """Refuse an `--out` that is a file, or a non-empty directory unless `overwrite` (a job's own lock
+    file does not count)."""
+    from aniformer.files import LOCK_NAME
+
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
+    if out.is_dir() and any(p.name != LOCK_NAME for p in out.iterdir()) and not overwrite:
         raise UserError(f"--out {out} exists and is not empty; pass --overwrite to replace it")
 
 
@@ -147,17 +153,29 @@ def check_output_dir(out: Path, overwrite: bool) -> None:
 def staged_output_dir(out: Path, overwrite: bool) -> Iterator[Path]:
     """Yield a temporary directory beside `out`; when the block succeeds it replaces `out`.
 
-    A failure (or Ctrl-C) leaves `out` as it was and removes the partial directory.
+    A failure (or Ctrl-C) leaves `out` as it was and removes the partial directory; what a killed
+    job left beside `out` is removed first (`files.clean_stale_staging`). When this process holds the
+    lock on `out` (`files.lock_output`), the new directory is locked too before it takes `out`'s place,
+    and the two are exchanged atomically, so no other job can slip in between.
     """
+    from aniformer import files
+
     check_output_dir(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    files.clean_stale_staging(out)
+    tmp = files.staging_dir(out)
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the results are an ordinary directory
     try:
         yield tmp
         check_output_dir(out, overwrite)  # still true after a long job?
+        lock = files.held_lock(out)
+        if lock is not None and lock.directory == Path(os.path.abspath(out)):
+            lock.add(tmp)  # the new `out` is locked as it appears
+        if out.exists() and files.swap_dirs(tmp, out):
+            shutil.rmtree(tmp, ignore_errors=True)  # now the old `out`
+            return
         old = None
         if out.exists():
             old = out.with_name(f".{out.name}.old-{os.getpid()}")
@@ -170,13 +188,56 @@ def staged_output_dir(out: Path, overwrite: bool) -> Iterator[Path]:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
+_terminated = False
+
+
+def _on_sigterm(signum, frame):
+    global _terminated
+    _terminated = True
+    raise SystemExit(143)
+
+
+def terminated() -> bool:
+    """Whether this process was sent SIGTERM (`ray job stop`, kill) while `run` ran its job."""
+    return _terminated
+
+
 def run(main: Callable[[list[str]], Any], argv: list[str] | None = None) -> None:
-    """Call `main(argv)`; a `UserError` becomes one line on stderr and exit status 2."""
+    """Call `main(argv)`; a `UserError` becomes one line on stderr and exit status 2, Ctrl-C 130,
+    SIGTERM 143 (whatever the stack made of the `SystemExit` it raises), a full disk one line and 1.
+    Output locks the job took (`files.lock_output`) are released as it ends."""
+    import errno
+    import signal
+
+    from aniformer.files import release_locks
+
+    global _terminated
+    _terminated = False
+    try:
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:  # not the main thread
+        previous = None
     try:
         main(sys.argv[1:] if argv is None else argv)
-    except UserError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        sys.exit(130)
+    except BaseException as e:
+        if _terminated:
+            print("terminated (SIGTERM)", file=sys.stderr)
+            sys.exit(143)
+        if isinstance(e, UserError):
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+        if isinstance(e, KeyboardInterrupt):
+            print("interrupted", file=sys.stderr)
+            sys.exit(130)
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            print(f"error: no space left on the device ({e.filename or e}); nothing partial was kept",
+                  file=sys.stderr)
+            sys.exit(1)
+        raise
+    finally:
+        release_locks()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    if _terminated:  # the stack swallowed the SystemExit and returned
+        print("terminated (SIGTERM)", file=sys.stderr)
+        sys.exit(143)

@@ -13,7 +13,8 @@ first by default) as performed by its driver -> `OUT/driving/frame_NNNN.obj`; ta
 `--target` (the split's first by default) at the first frame of another motion -> `OUT/target.obj`;
 that target performing the same motion -> `OUT/ground_truth/frame_NNNN.obj` (what a perfect
 animation gives). Uncentred, in the bank's metres, z up. Written to a temporary directory and
-renamed into place; an existing non-empty OUT is refused unless `--overwrite`.
+renamed into place; an existing non-empty OUT is refused unless `--overwrite`, and so is an OUT that is,
+holds or lies inside the bank.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import ArgumentParser, UserError, check_output_dir, run, staged_output_dir  # noqa: E402
+from aniformer.cli import ArgumentParser, UserError, run, staged_output_dir  # noqa: E402
+from aniformer.files import claim_output  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -57,7 +59,7 @@ def _pick(name: str, value: int | None, allowed: list[int], split: str) -> int:
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
     out = Path(args.out).expanduser().resolve()
-    check_output_dir(out, args.overwrite)
+    claim_output(out, args.overwrite, {"--bank": args.bank})  # one job per --out; --overwrite never deletes the bank
     (_export_stream if args.stream else _export_bank)(args, out)
 
 

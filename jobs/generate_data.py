@@ -7,8 +7,10 @@ Overrides are ``key=value`` (dotted, values parsed as YAML); a bare key of the `
 (``seed=3``) means ``data.seed=3``. Without ``RAY_ADDRESS`` a local Ray instance is started (no
 dashboard; nothing listens beyond 127.0.0.1); with it, or under ``ray job submit``, the job runs on
 that cluster (give ``--out`` as a path the driver can write, e.g. absolute, on shared storage).
-Output is written under a temporary name beside ``--out`` and renamed into place when complete;
-an existing non-empty ``--out`` is refused unless ``--overwrite``.
+Output is written under a temporary name beside ``--out`` and renamed into place when complete (a
+killed job's is removed by the next one); an existing non-empty ``--out`` is refused unless
+``--overwrite``, and so is an ``--out`` that is, holds or lies inside ``--from-meshes``. One job at a
+time per ``--out``: a second is refused, naming the first.
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import ArgumentParser, UserError, check_output_dir, load_config, run, staged_output_dir  # noqa: E402
+from aniformer.cli import ArgumentParser, UserError, load_config, run, staged_output_dir  # noqa: E402
+from aniformer.files import claim_output  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -58,9 +61,9 @@ def main(argv: list[str]) -> None:
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
     out = Path(args.out).expanduser().resolve()
-    check_output_dir(out, args.overwrite)
     if args.from_meshes and not Path(args.from_meshes).is_dir():
         raise UserError(f"--from-meshes {args.from_meshes}: not a directory")
+    claim_output(out, args.overwrite, {"--from-meshes": args.from_meshes})  # one job per --out; never an input
 
     start = time.perf_counter()
     with staged_output_dir(out, args.overwrite) as tmp:

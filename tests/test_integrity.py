@@ -1,4 +1,5 @@
-"""Nothing lost, nothing silently wrong (issue 18): bank integrity.
+"""Nothing lost, nothing silently wrong (issue 18): bank integrity, one job per output, `--overwrite`
+that never deletes an input, SIGTERM.
 
 No Ray: banks are written here from random vertices with the bank's own writers, jobs are run only
 up to the point where they refuse (before Ray starts). Concurrency uses real second processes.
@@ -9,6 +10,10 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+import signal
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +24,7 @@ from pipeline import data
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.yaml"
+PY = sys.executable
 
 
 def make_bank(root: Path) -> Path:
@@ -203,3 +209,214 @@ def test_export_meshes_job_refuses_a_corrupt_bank_in_one_line(bank, tmp_path, ca
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1 and str(shard) in err, err
     assert not (tmp_path / "x").exists()
+
+
+# ------------------------------------------------------------------------- one job per output
+
+HOLDER = textwrap.dedent("""
+    import sys, time
+    sys.path.insert(0, {root!r})
+    from aniformer.files import lock_output
+    lock_output(sys.argv[1])
+    print("locked", flush=True)
+    time.sleep(120)
+""")
+
+
+@pytest.fixture
+def holder(tmp_path):
+    """`holder(out)`: a second process that holds the lock on `out` until the test ends (or kills it)."""
+    procs = []
+
+    def start(out: Path) -> subprocess.Popen:
+        proc = subprocess.Popen([PY, "-c", HOLDER.format(root=str(ROOT)), str(out)], stdout=subprocess.PIPE, text=True)
+        procs.append(proc)
+        assert proc.stdout.readline().strip() == "locked"
+        return proc
+
+    yield start
+    for proc in procs:
+        proc.kill()
+        proc.wait()
+
+
+JOBS = {
+    "train": ["--config", TINY],
+    "sweep": ["--config", ROOT / "configs/sweep_tiny.yaml"],
+    "ablate": ["--config", ROOT / "configs/ablation.yaml"],
+    "generate_data": ["--config", TINY],
+    "export_meshes": ["--stream", "notoes_collapse3pc"],
+}
+
+
+@pytest.mark.parametrize("job", sorted(JOBS))
+def test_a_second_job_on_the_same_out_is_refused_naming_the_first(job, tmp_path, holder, capsys, job_main):
+    out = tmp_path / "out"
+    first = holder(out)
+    with pytest.raises(SystemExit) as exit_:
+        run(job_main(job), [*map(str, JOBS[job]), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1, err
+    assert f"--out {out} is in use by another job (pid {first.pid} on " in err and "-c " in err, err
+
+
+def test_the_lock_is_released_when_the_holder_dies_and_its_file_removed_after_a_job(tmp_path, holder):
+    from aniformer.files import LOCK_NAME, lock_output
+
+    out = tmp_path / "out"
+    first = holder(out)
+    assert "in use" in refusal(lambda: lock_output(out))
+    first.send_signal(signal.SIGKILL)
+    first.wait()
+    assert (out / LOCK_NAME).exists()  # a killed holder leaves the file, not the lock
+    run(lambda _: lock_output(out), [])  # a job: takes the lock, ends
+    assert not (out / LOCK_NAME).exists() and out.is_dir()
+
+
+def test_a_staged_output_stays_locked_while_it_replaces_the_old_one(tmp_path, holder):
+    """The staging directory is locked before it is swapped in, so no other job gets in between."""
+    from aniformer.cli import staged_output_dir
+    from aniformer.files import claim_output, release_locks
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    probe = [PY, "-c", f"import sys; sys.path.insert(0, {str(ROOT)!r}); from aniformer.files import lock_output; "
+             f"lock_output({str(out)!r})"]
+    try:
+        claim_output(out, overwrite=True)
+        with staged_output_dir(out, overwrite=True) as tmp:
+            (tmp / "new.txt").write_text("new")
+        assert sorted(p.name for p in out.iterdir()) == [".lock", "new.txt"]
+        second = subprocess.run(probe, capture_output=True, text=True)
+        assert second.returncode != 0 and "in use by another job" in second.stderr
+    finally:
+        release_locks()
+    assert sorted(p.name for p in out.iterdir()) == ["new.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging, no old directory left
+    assert subprocess.run(probe).returncode == 0
+
+
+def test_stale_staging_directories_are_removed_at_the_next_start(tmp_path, holder):
+    from aniformer.cli import staged_output_dir
+    from aniformer.files import claim_output, release_locks
+
+    out = tmp_path / "out"
+    dead = subprocess.run([PY, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    live = holder(tmp_path / "elsewhere")
+    for name in (f".out.{dead.stdout.strip()}-abcdefgh.tmp", f".out.{live.pid}-ijklmnop.tmp", ".out.qrstuvwx.tmp"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "shard").write_text("partial")
+    (tmp_path / ".outer.abcdefgh.tmp").mkdir()  # another output's: never touched
+    with staged_output_dir(out, overwrite=False) as tmp:  # unlocked: only a dead process's leftovers go
+        (tmp / "a").write_text("a")
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == sorted([".out.qrstuvwx.tmp", f".out.{live.pid}-ijklmnop.tmp", ".outer.abcdefgh.tmp", "elsewhere",
+                           "out"])
+    try:
+        claim_output(out, overwrite=True)  # locked: nobody else can be staging this output
+        with staged_output_dir(out, overwrite=True) as tmp:
+            (tmp / "b").write_text("b")
+    finally:
+        release_locks()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".outer.abcdefgh.tmp", "elsewhere", "out"]
+
+
+def test_an_incomplete_own_bank_is_regenerated_staged(tmp_path, monkeypatch):
+    """What an unstaged generation killed mid-way left (shards, no manifest) is replaced; a killed
+    staged one left a staging directory, which the next start removes."""
+    from aniformer.files import lock_output, release_locks
+
+    out = tmp_path / "run"
+    bank = out / "bank"
+    (bank / "shards").mkdir(parents=True)
+    (bank / "shards/part-00000.parquet").write_bytes(b"partial")
+    (out / ".bank.1-abcdefgh.tmp").mkdir()
+    calls = []
+
+    def fake_generate(cfg, where, **_):
+        calls.append(Path(where))
+        assert Path(where).parent == out and not bank.joinpath(data.MANIFEST).exists()
+        return make_bank(Path(where)) and data.read_manifest(where)
+
+    monkeypatch.setattr(data, "generate_bank", fake_generate)
+    cfg = data.data_config(load_config(TINY))
+    try:
+        lock_output(out)
+        manifest, faces = data.prepare_bank(cfg, bank, generate=True)
+    finally:
+        release_locks()
+    assert len(calls) == 1 and (bank / data.MANIFEST).is_file() and faces.shape[1] == 3
+    assert sorted(p.name for p in out.iterdir()) == ["bank"]
+    (tmp_path / "other" / "bank").mkdir(parents=True)
+    (tmp_path / "other" / "bank" / "notes.txt").write_text("mine")
+    assert "holds no mesh bank" in refusal(lambda: data.prepare_bank(cfg, tmp_path / "other" / "bank", generate=True))
+
+
+# ---------------------------------------------------------------- --overwrite never deletes an input
+
+
+def test_protect_inputs(tmp_path):
+    from aniformer.files import protect_inputs
+
+    run_dir = tmp_path / "run"
+    (run_dir / "bank").mkdir(parents=True)
+    (run_dir / "best.pt").write_bytes(b"x")
+    (tmp_path / "link").symlink_to(run_dir, target_is_directory=True)
+    assert "is the input --bank" in refusal(lambda: protect_inputs(run_dir / "bank", {"--bank": run_dir / "bank"}))
+    assert "contains the input --checkpoint" in refusal(
+        lambda: protect_inputs(run_dir, {"--checkpoint": run_dir / "best.pt"}))
+    assert "contains the input --checkpoint" in refusal(  # through a symlink
+        lambda: protect_inputs(run_dir, {"--checkpoint": tmp_path / "link" / "best.pt"}))
+    assert "is inside the input --driving" in refusal(
+        lambda: protect_inputs(run_dir / "bank" / "anim", {"--driving": run_dir / "bank"}))
+    protect_inputs(tmp_path / "elsewhere", {"--checkpoint": run_dir / "best.pt", "--bank": run_dir / "bank"})
+    protect_inputs(run_dir, {"--checkpoint": "0123456789abcdef0123456789abcdef", "--bank": None})  # a run id
+
+
+def test_export_meshes_overwrite_never_deletes_its_bank(bank, capsys, job_main):
+    before = {p: p.read_bytes() for p in bank.rglob("*") if p.is_file()}
+    for out in (bank, bank.parent, bank / "samples"):
+        with pytest.raises(SystemExit) as exit_:
+            run(job_main("export_meshes"), ["--bank", str(bank), "--out", str(out), "--overwrite"])
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and err.count("\n") == 1 and "input --bank" in err, err
+    assert {p: p.read_bytes() for p in bank.rglob("*") if p.is_file()} == before
+    assert not (bank / "samples").exists()
+
+
+def test_generate_data_never_writes_into_its_sources(tmp_path, capsys, job_main):
+    src = tmp_path / "meshes"
+    (src / "a" / "clip").mkdir(parents=True)
+    for out in (src, src / "bank", tmp_path):
+        with pytest.raises(SystemExit) as exit_:
+            run(job_main("generate_data"), ["--config", str(TINY), "--from-meshes", str(src), "--out", str(out),
+                                            "--overwrite"])
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and "input --from-meshes" in err, err
+    assert sorted(p.name for p in src.rglob("*")) == ["a", "clip"]
+
+
+# ------------------------------------------------------------------------------------ SIGTERM
+
+SLEEPER = textwrap.dedent("""
+    import sys, time
+    sys.path.insert(0, {root!r})
+    from aniformer.cli import run
+    def main(argv):
+        print("ready", flush=True)
+        try:
+            time.sleep(60)
+        except SystemExit as e:  # what a library might do with it
+            raise RuntimeError("wrapped") from e
+    run(main)
+""")
+
+
+def test_sigterm_exits_143_with_one_line_whatever_the_stack_makes_of_it():
+    proc = subprocess.Popen([PY, "-c", SLEEPER.format(root=str(ROOT))], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 143 and err == "terminated (SIGTERM)\n", err

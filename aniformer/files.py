@@ -1,0 +1,286 @@
+"""File-system guarantees of the jobs: one job per output directory, outputs that never hold an input,
+and staging directories that a crash does not leave behind. No Ray, no MLflow.
+
+- ``lock_output(out)``: an exclusive ``fcntl.flock`` on ``OUT/.lock``, held until the job ends (``cli.run``
+  releases it; the kernel does if the process dies). A second job on the same ``--out`` is refused in
+  one line naming the holder (pid, host, command, start time). The lock file is removed on release.
+- ``protect_inputs(out, inputs)``: `UserError` when ``--out`` is, contains or lies inside an input
+  (``--overwrite`` replaces ``--out`` as a whole: it must never delete what the job reads).
+- ``claim_output(out, overwrite, inputs)``: both, plus ``check_output_dir``: what a job calls once.
+- ``staging_dir``/``clean_stale_staging``/``swap_dirs``: the pieces of ``cli.staged_output_dir``.
+- ``exclusive(path)``: a short critical section between processes (the first creation of a store).
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import ctypes
+import errno
+import fcntl
+import json
+import os
+import re
+import shlex
+import shutil
+import socket
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+
+LOCK_NAME = ".lock"
+_HELD: dict[Path, OutputLock] = {}
+_AT_EXIT = False
+_ATOMIC_TMP = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp$")  # cli.atomic_path's temporary files
+
+
+class OutputLock:
+    """The held lock of one output directory (see `lock_output`)."""
+
+    def __init__(self, directory: Path, created: bool):
+        self.directory, self.created = directory, created
+        self._files: list[tuple[Path, int]] = []  # (where the lock file is, or will be; its fd)
+
+    def add(self, directory: Path, flag: str = "--out") -> None:
+        """Also lock ``directory/.lock``: a staging directory about to take ``self.directory``'s place,
+        where its lock file will then be (released files are told apart by inode)."""
+        fd = _acquire(directory / LOCK_NAME, flag, directory)
+        self._files.append((self.directory / LOCK_NAME, fd))
+
+    def release(self) -> None:
+        """Remove the lock files (only those that are still ours) and unlock; remove the directory
+        too if this lock created it and nothing else was put there."""
+        for path, fd in reversed(self._files):
+            try:
+                if _same_file(fd, path):
+                    os.unlink(path)
+            except OSError:
+                pass
+            os.close(fd)
+        self._files.clear()
+        _HELD.pop(self.directory, None)
+        if self.created:
+            try:
+                self.directory.rmdir()  # only if empty
+            except OSError:
+                pass
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    try:
+        a, b = os.fstat(fd), os.stat(path)
+    except FileNotFoundError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
+def holder() -> dict:
+    """Who holds a lock: this process."""
+    command = " ".join(shlex.join([Path(sys.argv[0]).name if sys.argv else "python", *sys.argv[1:]]).split())
+    return {"pid": os.getpid(), "host": socket.gethostname(), "command": command[:300],
+            "since": time.strftime("%Y-%m-%d %H:%M:%S %z")}
+
+
+def _describe(fd: int) -> str:
+    try:
+        info = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
+        return (f"pid {info.get('pid')} on {info.get('host')} since {info.get('since')}: "
+                f"{info.get('command', '?')}")
+    except (OSError, ValueError, AttributeError):
+        return "a job that has not written its name yet"
+
+
+def _acquire(path: Path, flag: str, directory: Path) -> int:
+    """An fd holding an exclusive flock on `path` (created if need be); `UserError` if another open
+    file holds it. Lock files are removed on release, so after locking check that `path` is still
+    the file we locked (a releasing holder may have just unlinked it), else try again."""
+    from aniformer.cli import UserError
+
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as e:
+            raise UserError(f"{flag} {directory}: cannot create {path.name} ({e.strerror})") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            who = _describe(fd)
+            os.close(fd)
+            raise UserError(f"{flag} {directory} is in use by another job ({who}); "
+                            f"wait for it to end or choose another {flag}") from None
+        except OSError as e:
+            os.close(fd)
+            raise UserError(f"{flag} {directory}: cannot lock {path} ({e.strerror})") from None
+        if _same_file(fd, path):
+            break
+        os.close(fd)
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, (json.dumps(holder()) + "\n").encode(), 0)
+    return fd
+
+
+def lock_output(out: str | os.PathLike, flag: str = "--out") -> OutputLock:
+    """Lock output directory `out` (created if missing) for this process; the same lock again if this
+    process holds it already. Stale temporary files of `cli.atomic_path` in `out` are removed (none
+    can be in use: the lock is ours)."""
+    from aniformer.cli import UserError
+
+    out = Path(os.path.abspath(os.path.expanduser(out)))
+    if out in _HELD:
+        return _HELD[out]
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{flag} {out} exists and is not a directory")
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UserError(f"{flag} {out}: cannot create it ({e.strerror})") from None
+    lock = OutputLock(out, created)
+    try:
+        lock.add(out, flag)
+    except BaseException:
+        lock.release()
+        raise
+    global _AT_EXIT
+    if not _AT_EXIT:
+        atexit.register(release_locks)  # a caller that is not `cli.run` still removes its lock files
+        _AT_EXIT = True
+    _HELD[out] = lock
+    for path in out.iterdir():
+        if _ATOMIC_TMP.match(path.name) and path.is_file() and not path.is_symlink():
+            path.unlink(missing_ok=True)
+    return lock
+
+
+def held_lock(path: str | os.PathLike) -> OutputLock | None:
+    """The lock this process holds on `path` or on a directory above it, if any."""
+    path = Path(os.path.abspath(path))
+    for directory, lock in _HELD.items():
+        if path == directory or path.is_relative_to(directory):
+            return lock
+    return None
+
+
+def release_locks() -> None:
+    """Release every lock this process holds (the end of a job)."""
+    for lock in list(_HELD.values()):
+        lock.release()
+
+
+def protect_inputs(out: str | os.PathLike, inputs: Mapping[str, str | os.PathLike | None]) -> None:
+    """`UserError` if `out` is, contains, or lies inside one of `inputs` ({flag: path}; None and
+    paths that do not exist, such as an MLflow run id, are skipped). Paths are compared after
+    resolving symlinks, so a link cannot hide an input inside `out`."""
+    from aniformer.cli import UserError
+
+    target = Path(os.path.expanduser(out)).resolve()
+    for flag, value in inputs.items():
+        if value is None or str(value) == "":
+            continue
+        given = Path(os.path.expanduser(value))
+        if not given.exists():
+            continue
+        real = given.resolve()
+        if real == target:
+            raise UserError(f"--out {out} is the input {flag} {value}; choose another --out")
+        if real.is_relative_to(target):
+            raise UserError(f"--out {out} contains the input {flag} {value} (--overwrite would delete it); "
+                            "choose another --out")
+        if real.is_dir() and target.is_relative_to(real):
+            raise UserError(f"--out {out} is inside the input {flag} {value}; write outputs elsewhere")
+
+
+def claim_output(out: str | os.PathLike, overwrite: bool,
+                 inputs: Mapping[str, str | os.PathLike | None] = ()) -> OutputLock:
+    """What a job does with its `--out` before any work: refuse one that is, holds or lies inside an
+    input, lock it (one job per output), then refuse a non-empty one unless `overwrite`."""
+    from aniformer.cli import check_output_dir
+
+    protect_inputs(out, dict(inputs))
+    fresh = Path(os.path.abspath(os.path.expanduser(out))) not in _HELD
+    lock = lock_output(out)
+    try:
+        check_output_dir(lock.directory, overwrite)
+    except BaseException:
+        if fresh:
+            lock.release()
+        raise
+    return lock
+
+
+# ------------------------------------------------------------------------- staging directories
+
+def staging_dir(out: Path) -> Path:
+    """A new private directory beside `out` (`.NAME.PID-XXXXXXXX.tmp`) to build `out` in."""
+    return Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}-", suffix=".tmp", dir=out.parent))
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def clean_stale_staging(out: Path) -> list[Path]:
+    """Remove what killed jobs left beside `out`: staging directories (`.NAME[.PID-]XXXXXXXX.tmp`) and,
+    once `out` holds results, the `.NAME.old-PID` it replaced. All of them when this process holds the
+    lock on `out` (no other job can be writing them), else only those of processes that are gone."""
+    if not out.parent.is_dir():
+        return []
+    locked = held_lock(out) is not None
+    staged = re.compile(rf"^\.{re.escape(out.name)}\.(?:(\d+)-)?[a-z0-9_]{{8}}\.tmp$")
+    old = re.compile(rf"^\.{re.escape(out.name)}\.old-(\d+)$")
+    has_results = out.is_dir() and any(p.name != LOCK_NAME for p in out.iterdir())
+    removed = []
+    for path in out.parent.iterdir():
+        match = staged.match(path.name) or (old.match(path.name) if has_results else None)
+        if match is None or path.is_symlink() or not path.is_dir():
+            continue
+        pid = match.group(1)
+        if locked or (pid is not None and not _alive(int(pid))):
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    return removed
+
+
+def swap_dirs(a: Path, b: Path) -> bool:
+    """Exchange two directories atomically (Linux renameat2 RENAME_EXCHANGE); False where the system or
+    the file system cannot (the caller then renames in two steps)."""
+    try:
+        renameat2 = ctypes.CDLL(None, use_errno=True).renameat2
+    except (AttributeError, OSError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(code, os.strerror(code), str(b))
+
+
+@contextlib.contextmanager
+def exclusive(path: str | os.PathLike) -> Iterator[None]:
+    """Hold an exclusive flock on `path` (waiting for other holders) for the block; the file is
+    removed afterwards, so nothing is left behind (see `_acquire` for why that is safe)."""
+    path = Path(path)
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        if _same_file(fd, path):
+            break
+        os.close(fd)
+    try:
+        yield
+    finally:
+        try:
+            if _same_file(fd, path):
+                os.unlink(path)
+        finally:
+            os.close(fd)
