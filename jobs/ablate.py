@@ -14,7 +14,6 @@ Without RAY_ADDRESS a local Ray instance is started.
 from __future__ import annotations
 
 import json
-import signal
 import sys
 import time
 from pathlib import Path
@@ -46,7 +45,7 @@ def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: s
         print(f"[{row}] training ({spec.model_name}, {spec.train.epochs} epochs) ...", flush=True)
         run_dir.mkdir(parents=True, exist_ok=True)
         tracker = start_job_run(f"{name}-{slug(row)}", spec.to_dict(), experiment=experiment,
-                                parent_run_id=parent_run_id)
+                                parent_run_id=parent_run_id, out=run_dir)
         tracker.set_tags({"ablation.variant": row})
         with tracker.ended():
             result = train_job(spec, bank, run_dir, f"{name}-{slug(row)}", tracker, faces)
@@ -134,9 +133,8 @@ def main(argv: list[str]) -> None:
     _, faces = prepare_bank(first.data, bank, generate=args.bank is None)
     variants = {slug(row): " ".join(overrides) or "(base)" for row, overrides in ablation.variants.items()}
     parent = start_job_run(name, {**first.to_dict(), "ablation": {**variants, "common": " ".join(ablation.common)}},
-                           experiment=args.experiment)
+                           experiment=args.experiment, out=out)
     parent.set_tags({"kind": "ablation"})
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     started = time.perf_counter()
     with parent.ended():
         checkpoints = _train_variants(specs, bank, out, name, args.experiment, parent.run_id, faces)

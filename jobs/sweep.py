@@ -14,7 +14,6 @@ only the unfinished ones run. Without RAY_ADDRESS a local Ray instance is starte
 
 from __future__ import annotations
 
-import signal
 import sys
 from pathlib import Path
 
@@ -54,10 +53,9 @@ def main(argv: list[str]) -> None:
     manifest, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
     vertices = int(manifest["num_vertices"]) if manifest else int(faces.max()) + 1  # a stream: its topology's
     restore = experiment_exists(out, name)
-    parent = start_job_run(name, {**spec.to_dict(), "sweep": sweep.to_dict()}, experiment=args.experiment)
+    parent = start_job_run(name, {**spec.to_dict(), "sweep": sweep.to_dict()}, experiment=args.experiment, out=out)
     parent.set_tags({"kind": "sweep", "sweep.search": sweep.search,
                      "memory_limit_gb": sweep.memory_limit_gb or "none"})
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     status, unfinished = "FAILED", []
     try:
         print(("restoring" if restore else "starting") + f" sweep {name} in {out / 'tune' / name}", flush=True)

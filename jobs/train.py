@@ -6,13 +6,14 @@
 Without RAY_ADDRESS a local Ray instance is started (dashboard on 127.0.0.1 only); with it, or under
 `ray job submit`, the job runs on that cluster. The mesh bank is `--bank DIR` if given, else
 `OUT/bank`, generated there on first use. Running the same command again (same `--out` and job name)
-resumes from the latest checkpoint and continues the same MLflow run. Outputs: `OUT/best.pt`,
+resumes from the latest checkpoint (the newest intact one) and continues the same MLflow run, which is
+identified by the absolute `--out` and the name. One job at a time per `--out`: it is locked (`OUT/.lock`)
+and a second job is refused, naming the first. Outputs: `OUT/best.pt`,
 `OUT/last.pt`, Ray's checkpoints under `OUT/ray/NAME`, and the MLflow run (printed at the end).
 """
 
 from __future__ import annotations
 
-import signal
 import sys
 from pathlib import Path
 
@@ -39,9 +40,8 @@ def main(argv: list[str]) -> None:
     quiet_mlflow()
     connect()
     _, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
-    tracker = start_job_run(name, spec.to_dict(), experiment=args.experiment)
-    # `ray job stop` and kill send SIGTERM: end the MLflow run as KILLED rather than leave it RUNNING.
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    tracker = start_job_run(name, spec.to_dict(), experiment=args.experiment, out=out)
+    # `ray job stop` and kill send SIGTERM: `run` makes it exit 143, the run ends KILLED (never RUNNING).
     with tracker.ended():
         result = train_job(spec, bank, out, name, tracker, faces)
     metrics = result.metrics or {}

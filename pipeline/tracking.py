@@ -1,17 +1,29 @@
-"""MLflow: one run per training job, named after the job, so a resumed job continues its run.
+"""MLflow: one run per job, so a resumed job continues its run.
+
+A job's run is identified by its absolute output directory plus its name (tags `aniformer.out`, the
+path, and `aniformer.out_id`, a digest of it that is safe in a search filter), never by the name alone:
+two jobs of one name in different `--out`s get two runs, each with its own artifacts. A child run (a
+sweep's trial) without an output of its own is identified by its parent run plus its name. The
+output lock (`aniformer.files.lock_output`) makes the job the only one on its output, so a run of that
+output still RUNNING when it starts was left so by a killed driver: it is ended KILLED (tagged
+`aniformer.ended_by`), and the job's own run is then reopened.
 
 The tracking store is `MLFLOW_TRACKING_URI` when set, else the embedded `sqlite:///<cwd>/mlflow.db`
 with artifacts in `<cwd>/mlartifacts` (set explicitly: MLflow's default would be relative to
 whatever directory the process happens to run in). `mlflow ui --backend-store-uri sqlite:///mlflow.db`
 shows the runs. The driver creates and ends runs; the rank-0 training worker logs into them by id.
+A fresh sqlite store is created (its tables migrated) by one process at a time (a file lock beside
+it), so jobs started together on a new `mlflow.db` all succeed.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import re
+import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
@@ -21,6 +33,9 @@ from mlflow.tracking import MlflowClient
 from aniformer.cli import UserError
 
 JOB_TAG = "aniformer.job"
+OUT_TAG = "aniformer.out"  # the absolute output directory of the job
+OUT_ID_TAG = "aniformer.out_id"  # sha256 of OUT_TAG (searchable whatever characters the path has)
+PARENT_TAG = "mlflow.parentRunId"
 DEFAULT_EXPERIMENT = "aniformer"
 RUN_ID = re.compile(r"(?:runs:/)?([0-9a-f]{32})(?:/.*)?")  # a run id, or a runs:/ URI
 CHECKPOINT_ARTIFACT = "checkpoints/best.pt"  # where jobs/train.py logs a run's best checkpoint
@@ -28,6 +43,29 @@ CHECKPOINT_ARTIFACT = "checkpoints/best.pt"  # where jobs/train.py logs a run's 
 
 def tracking_uri() -> str:
     return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{Path.cwd() / 'mlflow.db'}"
+
+
+_READY: set[str] = set()  # stores this process has opened (and so created, if they were new)
+
+
+def client_for(uri: str) -> MlflowClient:
+    """An MlflowClient of store `uri`. The first one of a process on a sqlite store is made under a
+    file lock beside the database (`mlflow.db.lock`, removed after): opening a new store creates and
+    migrates its tables, and two processes doing that at once break it ("Online migration expected
+    to match one row")."""
+    if uri in _READY or not uri.startswith("sqlite:///"):
+        return MlflowClient(uri)
+    from aniformer.files import exclusive
+
+    db = Path(uri.removeprefix("sqlite:///"))
+    with exclusive(db.with_name(db.name + ".lock")):
+        client = MlflowClient(uri)
+    _READY.add(uri)
+    return client
+
+
+def output_id(out: str | os.PathLike) -> str:
+    return hashlib.sha256(os.fsencode(os.path.abspath(out))).hexdigest()[:32]
 
 
 def ui_hint(uri: str) -> str:
@@ -64,7 +102,7 @@ class Tracker:
 
     @property
     def client(self) -> MlflowClient:
-        return MlflowClient(self.uri)
+        return client_for(self.uri)
 
     def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
         import time
@@ -86,6 +124,8 @@ class Tracker:
     def ended(self) -> Iterator[None]:
         """End the run as the block leaves: FINISHED, KILLED on Ctrl-C or SIGTERM (SystemExit), else
         FAILED, so a job never leaves its run RUNNING."""
+        from aniformer.cli import terminated
+
         status = "FAILED"
         try:
             yield
@@ -94,43 +134,107 @@ class Tracker:
             status = "KILLED"
             raise
         finally:
-            self.end(status)
+            self.end("KILLED" if terminated() else status)
 
 
 def experiment_id(client: MlflowClient, name: str, uri: str) -> str:
     experiment = client.get_experiment_by_name(name)
     if experiment is not None:
         return experiment.experiment_id
-    return client.create_experiment(name, artifact_location=_artifact_location(uri))
+    from mlflow.exceptions import MlflowException
+
+    try:
+        return client.create_experiment(name, artifact_location=_artifact_location(uri))
+    except MlflowException:  # another job created it just now
+        experiment = client.get_experiment_by_name(name)
+        if experiment is None:
+            raise
+        return experiment.experiment_id
+
+
+def _search(client: MlflowClient, exp_id: str, filter_string: str) -> list:
+    runs, token = [], None
+    while True:
+        page = client.search_runs([exp_id], filter_string=filter_string, max_results=1000, page_token=token)
+        runs += list(page)
+        token = page.token
+        if not token:
+            return runs
+
+
+def _job_run(client: MlflowClient, exp_id: str, job: str, out: str | None = None,
+             parent_run_id: str | None = None):
+    """The run of job `job`: of output `out` if given, else the child of `parent_run_id` if given, else
+    (callers that have neither) the newest run of that name that belongs to no output."""
+    if out is not None:
+        runs = _search(client, exp_id, f"tags.`{OUT_ID_TAG}` = '{output_id(out)}'")
+        runs = [r for r in runs if r.data.tags.get(OUT_TAG) == os.path.abspath(out)]
+    elif parent_run_id is not None:
+        runs = _search(client, exp_id, f"tags.`{PARENT_TAG}` = '{parent_run_id}'")
+    else:
+        runs = [r for r in _search(client, exp_id, f"tags.`{JOB_TAG}` = '{job}'") if OUT_TAG not in r.data.tags]
+    runs = [r for r in runs if r.data.tags.get(JOB_TAG) == job]
+    return max(runs, key=lambda r: r.info.start_time or 0) if runs else None
 
 
 def _job_run_id(client: MlflowClient, exp_id: str, job: str) -> str | None:
-    existing = client.search_runs([exp_id], filter_string=f"tags.`{JOB_TAG}` = '{job}'", max_results=1)
-    return existing[0].info.run_id if existing else None
+    run = _job_run(client, exp_id, job)
+    return run.info.run_id if run else None
 
 
-def find_job_run(job: str, experiment: str = DEFAULT_EXPERIMENT) -> Tracker | None:
-    """The MLflow run of job `job` if one was started, else None."""
+def find_job_run(job: str, experiment: str = DEFAULT_EXPERIMENT, *, out: str | os.PathLike | None = None,
+                 parent_run_id: str | None = None) -> Tracker | None:
+    """The MLflow run of job `job` (of output `out`, or child of `parent_run_id`; see `_job_run`) if
+    one was started, else None."""
     uri = tracking_uri()
-    client = MlflowClient(uri)
+    client = client_for(uri)
     exp = client.get_experiment_by_name(experiment)
-    run_id = _job_run_id(client, exp.experiment_id, job) if exp is not None else None
-    return Tracker(uri, run_id) if run_id else None
+    run = _job_run(client, exp.experiment_id, job, out and os.path.abspath(out), parent_run_id) if exp else None
+    return Tracker(uri, run.info.run_id) if run else None
+
+
+def end_orphaned_runs(client: MlflowClient, exp_id: str, out: str) -> list[str]:
+    """End KILLED every run still RUNNING of output `out` or of a directory inside it, and the children
+    of those runs: the caller holds the lock on `out`, so no live job can be logging into them (their
+    driver was killed). Returns their ids."""
+    inside = out.rstrip("/") + "/"
+    running = _search(client, exp_id, "attributes.status = 'RUNNING'")
+    orphans = {r.info.run_id for r in running
+               if r.data.tags.get(OUT_TAG) == out or r.data.tags.get(OUT_TAG, "").startswith(inside)}
+    orphans |= {r.info.run_id for r in running if r.data.tags.get(PARENT_TAG) in orphans}
+    note = (f"a job on {out} (pid {os.getpid()}, {time.strftime('%Y-%m-%d %H:%M:%S')}): the run's driver "
+            "had died and left it RUNNING")
+    for run_id in sorted(orphans):
+        client.set_tag(run_id, "aniformer.ended_by", note)
+        client.set_terminated(run_id, "KILLED")
+    return sorted(orphans)
 
 
 def start_job_run(job: str, config: Mapping, experiment: str = DEFAULT_EXPERIMENT,
-                  parent_run_id: str | None = None) -> Tracker:
-    """The MLflow run of job `job`: the existing one if the job ran before (resume), else a new one."""
+                  parent_run_id: str | None = None, out: str | os.PathLike | None = None) -> Tracker:
+    """The MLflow run of job `job` writing to output directory `out`: the existing one if this job ran
+    before there (resume), else a new one. Without `out`, a child of `parent_run_id` is found by its
+    parent and name, anything else by its name among the runs of no output (see `_job_run`).
+
+    When this process holds the lock on `out`, runs of `out` left RUNNING by a killed driver are ended
+    KILLED first (`end_orphaned_runs`)."""
+    from aniformer.files import held_lock
+
     uri = tracking_uri()
-    client = MlflowClient(uri)
+    client = client_for(uri)
     exp_id = experiment_id(client, experiment, uri)
-    run_id = _job_run_id(client, exp_id, job)
-    if run_id:
-        client.update_run(run_id, status=RunStatus.to_string(RunStatus.RUNNING))
-        return Tracker(uri, run_id)
+    out = os.path.abspath(out) if out is not None else None
+    if out is not None and held_lock(out) is not None:
+        end_orphaned_runs(client, exp_id, out)
+    run = _job_run(client, exp_id, job, out, parent_run_id)
+    if run is not None:
+        client.update_run(run.info.run_id, status=RunStatus.to_string(RunStatus.RUNNING))
+        return Tracker(uri, run.info.run_id)
     tags = {JOB_TAG: job}
+    if out is not None:
+        tags |= {OUT_TAG: out, OUT_ID_TAG: output_id(out)}
     if parent_run_id:
-        tags["mlflow.parentRunId"] = parent_run_id
+        tags[PARENT_TAG] = parent_run_id
     run = client.create_run(exp_id, run_name=job, tags=tags)
     params = [Param(k, v[:6000]) for k, v in flatten(config).items()]
     for i in range(0, len(params), 100):
@@ -160,6 +264,9 @@ def resolve_checkpoint(spec: str, scratch: Path) -> Path:
     import mlflow
 
     uri = tracking_uri()
+    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).is_file():
+        raise UserError(f"MLflow run {match.group(1)}: there is no tracking store at {uri.removeprefix('sqlite:///')} "
+                        "(set MLFLOW_TRACKING_URI, or run from the directory that holds mlflow.db)")
     try:
         local = mlflow.artifacts.download_artifacts(run_id=match.group(1), artifact_path=CHECKPOINT_ARTIFACT,
                                                     dst_path=str(scratch / match.group(1)), tracking_uri=uri)

@@ -1,5 +1,5 @@
 """Nothing lost, nothing silently wrong (issue 18): bank integrity, one job per output, `--overwrite`
-that never deletes an input, SIGTERM.
+that never deletes an input, MLflow run identity and a safely created store, SIGTERM.
 
 No Ray: banks are written here from random vertices with the bank's own writers, jobs are run only
 up to the point where they refuse (before Ray starts). Concurrency uses real second processes.
@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
@@ -395,6 +397,125 @@ def test_generate_data_never_writes_into_its_sources(tmp_path, capsys, job_main)
         err = capsys.readouterr().err
         assert exit_.value.code == 2 and "input --from-meshes" in err, err
     assert sorted(p.name for p in src.rglob("*")) == ["a", "clip"]
+
+
+# ------------------------------------------------------------------------------- MLflow runs
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch) -> str:
+    from pipeline.tracking import quiet_mlflow
+
+    quiet_mlflow()
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    return uri
+
+
+def test_runs_are_identified_by_output_and_name(store, tmp_path):
+    from pipeline.tracking import OUT_TAG, find_job_run, start_job_run
+
+    a = start_job_run("tiny", {"train": {"lr": 1}}, out=tmp_path / "runs" / "tiny")
+    b = start_job_run("tiny", {"train": {"lr": 2}}, out=tmp_path / "alt" / "tiny")  # same name, other --out
+    assert a.run_id != b.run_id
+    (tmp_path / "best.pt").write_text("a's")
+    a.log_artifact(tmp_path / "best.pt", "checkpoints")
+    (tmp_path / "best.pt").write_text("b's")
+    b.log_artifact(tmp_path / "best.pt", "checkpoints")
+    local = a.client.download_artifacts(a.run_id, "checkpoints/best.pt", str(tmp_path / "dl"))
+    assert Path(local).read_text() == "a's"  # b never replaced a's artifact
+    assert a.client.get_run(a.run_id).data.params["train.lr"] == "1"
+    assert a.client.get_run(a.run_id).data.tags[OUT_TAG] == str(tmp_path / "runs" / "tiny")
+    again = start_job_run("tiny", {}, out=tmp_path / "runs" / "tiny")
+    assert again.run_id == a.run_id  # the same job again: resumed
+    assert find_job_run("tiny", out=tmp_path / "alt" / "tiny").run_id == b.run_id
+    assert start_job_run("other", {}, out=tmp_path / "runs" / "tiny").run_id not in (a.run_id, b.run_id)
+    assert find_job_run("tiny") is None  # a lookup by name alone never finds an output's run
+
+
+def test_a_run_left_running_by_a_killed_driver_is_ended_by_the_next_job(store, tmp_path):
+    from aniformer.files import lock_output, release_locks
+    from pipeline.tracking import start_job_run
+
+    out = tmp_path / "run"
+    killed = start_job_run("tiny", {}, out=out)  # its driver "dies": never ended
+    other_name = start_job_run("tiny-b", {}, out=out)
+    child = start_job_run("tiny-v", {}, out=out / "runs" / "v", parent_run_id=killed.run_id)
+    elsewhere = start_job_run("tiny", {}, out=tmp_path / "busy")  # another output's live job
+    assert start_job_run("tiny", {}, out=out).run_id == killed.run_id  # no lock held: nothing is ended
+    client = killed.client
+    assert client.get_run(other_name.run_id).info.status == "RUNNING"
+    try:
+        lock_output(out)
+        resumed = start_job_run("tiny", {}, out=out)
+    finally:
+        release_locks()
+    assert resumed.run_id == killed.run_id
+    run = client.get_run(killed.run_id)
+    assert run.info.status == "RUNNING" and "driver had died" in run.data.tags["aniformer.ended_by"]
+    for ended in (other_name, child):
+        assert client.get_run(ended.run_id).info.status == "KILLED"
+    assert client.get_run(elsewhere.run_id).info.status == "RUNNING"
+
+
+def test_name_only_lookups_keep_working_for_runs_of_no_output(store):
+    """Sweep trials (tune.py) are opened by name and parent; found by name alone too."""
+    from pipeline.tracking import find_job_run, start_job_run
+
+    parent = start_job_run("sw", {}, out="/somewhere/sw")
+    trial = start_job_run("sw-a0001", {}, parent_run_id=parent.run_id)
+    assert start_job_run("sw-a0001", {}, parent_run_id=parent.run_id).run_id == trial.run_id
+    assert find_job_run("sw-a0001").run_id == trial.run_id
+    assert find_job_run("sw-a0001", parent_run_id=parent.run_id).run_id == trial.run_id
+    assert find_job_run("sw-a0001", parent_run_id="f" * 32) is None
+
+
+CREATE_RUN = textwrap.dedent("""
+    import sys, time
+    from pathlib import Path
+    sys.path.insert(0, {root!r})
+    from pipeline.tracking import quiet_mlflow, start_job_run
+    quiet_mlflow()
+    Path(sys.argv[2] + ".ready").touch()  # imports done: wait for the others
+    while not Path({go!r}).exists():
+        time.sleep(0.002)
+    tracker = start_job_run(sys.argv[1], {{"a": 1}}, out=sys.argv[2])
+    tracker.log_metrics({{"x": 1.0}}, step=1)
+    tracker.end("FINISHED")
+""")
+
+
+def test_jobs_starting_together_on_a_fresh_store_all_succeed(tmp_path):
+    """Four processes open a new mlflow.db at the same instant: one creates the tables, the others wait
+    (without the lock this fails: "Online migration expected to match one row", "duplicate column")."""
+    db, sync = tmp_path / "mlflow.db", tmp_path / "sync"
+    sync.mkdir()
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{db}"}
+    script = CREATE_RUN.format(root=str(ROOT), go=str(sync / "go"))
+    procs = [subprocess.Popen([PY, "-c", script, f"job{i}", str(sync / f"out{i}")], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for i in range(4)]
+    deadline = time.time() + 300
+    while len(list(sync.glob("*.ready"))) < 4 and time.time() < deadline and all(p.poll() is None for p in procs):
+        time.sleep(0.05)
+    (sync / "go").touch()
+    outputs = [p.communicate(timeout=300)[0] for p in procs]
+    assert [p.returncode for p in procs] == [0] * 4, "\n".join(o[-1500:] for o in outputs)
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(f"sqlite:///{db}")
+    runs = client.search_runs([client.get_experiment_by_name("aniformer").experiment_id])
+    assert sorted(r.data.tags["aniformer.job"] for r in runs) == [f"job{i}" for i in range(4)]
+    assert all(r.info.status == "FINISHED" for r in runs)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mlflow.db", "sync"]  # no lock file left
+
+
+def test_a_run_id_lookup_without_a_store_creates_none(tmp_path, monkeypatch):
+    from pipeline.tracking import resolve_checkpoint
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    message = refusal(lambda: resolve_checkpoint("0123456789abcdef0123456789abcdef", tmp_path / "scratch"))
+    assert "no tracking store" in message and not (tmp_path / "mlflow.db").exists()
 
 
 # ------------------------------------------------------------------------------------ SIGTERM
