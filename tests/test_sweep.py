@@ -119,6 +119,102 @@ def test_a_trial_failing_before_its_first_report_ends_its_run_failed(tmp_path, m
     callback.on_trial_error(0, [], SimpleNamespace(trial_id="a0002", last_result=None, error_file="error.txt"))  # no run
 
 
+def _trial(i: int, status: str, config: dict, result: dict | None = None, best: float | None = None):
+    """What the sweep's reporter and callbacks read of a Tune trial."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(trial_id=f"t{i:04d}", status=status, config=config, last_result=result or {},
+                           metric_analysis={"pmd_unseen": {"min": best}} if best is not None else {})
+
+
+def _reporter(*overrides: str, every: float = 0.0):
+    from pipeline.tune import SweepReporter, split_config
+
+    base, sweep = split_config(load_config(CONFIG, list(overrides)))
+    reporter = SweepReporter(base, sweep, sweep_name="sw", epochs=2, vertices=369, faces=734, every=every)
+    reporter.setup(start_time=time.time() - 75, total_samples=5, metric="pmd_unseen", mode="min")
+    return reporter
+
+
+RAN = {"memory_decision": "ok", "requested_batch_size": 4, "run_batch_size": 4, "grad_accumulation": 1,
+       "predicted_memory_gb": 0.862, "peak_memory_gb": 0.735}
+
+
+def test_live_table_shows_weights_window_memory_status_epoch_and_best_pmd(capsys):
+    """The console's trial table (SweepReporter): a row per trial with its lambdas, T, batch, predicted
+    memory (before the trial reported: the gate's prediction), the sweep's status, epochs, best PMD."""
+    reporter = _reporter("sweep.memory_limit_gb=1.2")
+    trials = [
+        _trial(0, "TERMINATED", {"rec": 8.46, "motion": 1.41e-4, "appearance": 2.37e-3, "window": 5},
+               {**RAN, "epoch": 2, "pmd_unseen": 560.0}, best=550.06),
+        _trial(1, "TERMINATED", {"rec": 0.7, "motion": 8.7e-4, "appearance": 2.1e-4, "window": 8},
+               {**RAN, "epoch": 1, "pmd_unseen": 1216.4}, best=1216.4),
+        _trial(2, "RUNNING", {"rec": 1.0, "motion": 1e-3, "appearance": 1e-3, "window": 8, "batch_size": 64}),
+        _trial(3, "PENDING", {"rec": 2.0, "motion": 1e-4, "appearance": 1e-4, "window": 8, "batch_size": 4096}),
+        _trial(4, "ERROR", {"rec": 3.0, "motion": 1e-4, "appearance": 1e-4, "window": 3}, {**RAN, "epoch": 1}),
+    ]
+    assert reporter.should_report(trials)
+    reporter.report(trials, False)
+    live = capsys.readouterr().out
+    lines = live.splitlines()
+    assert re.fullmatch(r"== sweep sw: 3/5 trials finished \(1 early_stopped, 1 failed, 1 ok\), 1 running; "
+                        r"1 min 1\d s ==", lines[0]), lines[0]
+    assert lines[1] == "best so far: trial t0000, PMD unseen 550.1 (x1e-4)"
+    header = next(line for line in lines if line.startswith("| trial"))
+    assert [c.strip() for c in header.strip("|").split("|")] == [
+        "trial", "status", "rec", "motion", "appearance", "T", "batch", "pred GB", "peak GB", "epoch", "best PMD"]
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")]
+            for line in lines if line.startswith("| t0")}
+    assert rows["t0000"] == ["t0000", "ok", "8.46", "0.000141", "0.00237", "5", "4", "0.86", "0.73", "2/2", "550.1"]
+    assert rows["t0001"][1] == "early_stopped" and rows["t0001"][9:] == ["1/2", "1216"]
+    # not reported yet: the gate's decision, as run_trial will apply it (64 -> 16 x 4 fits 1.2 GB)
+    assert rows["t0002"][1] == "running" and rows["t0002"][6] == "64->16x4" and 0 < float(rows["t0002"][7]) <= 1.2
+    assert rows["t0003"][1] == "pending" and rows["t0003"][6] == "4096 (skip)" and float(rows["t0003"][7]) > 1.2
+    assert rows["t0004"][1] == "failed" and rows["t0004"][10] == ""
+    assert not reporter.should_report(trials)  # nothing changed: nothing printed (a log stays short)
+    trials[2].last_result = {**RAN, "epoch": 1, "pmd_unseen": 700.0}
+    trials[2].metric_analysis = {"pmd_unseen": {"min": 700.0}}
+    assert reporter.should_report(trials)
+    reporter.report(trials, True)
+    final = capsys.readouterr().out
+    assert final.startswith("== sweep sw: 5 trials (1 early_stopped, 1 failed, 1 ok, 1 pending, 1 running) in 1 min 1")
+    assert "| t0002 | running" in final and "700" in final
+
+
+def test_live_table_is_throttled():
+    reporter = _reporter(every=60)
+    trials = [_trial(0, "PENDING", {"rec": 1.0, "motion": 1e-3, "appearance": 1e-3, "window": 3})]
+    assert reporter.should_report(trials)
+    reporter.report(trials, False)
+    trials[0].status = "RUNNING"
+    assert not reporter.should_report(trials)  # changed, but printed less than `every` seconds ago
+    assert reporter.should_report(trials, done=True)  # the final table always
+
+
+def test_ended_trials_runs_get_their_best_pmd_and_predicted_memory_as_metrics(tmp_path, monkeypatch):
+    """The compare view plots metrics: each child run gets best_pmd_unseen (the minimum over its epochs,
+    not the last epoch's) and predicted_memory_gb when its trial ends."""
+    from pipeline.tracking import start_job_run
+    from pipeline.tune import SweepRuns, compare_link
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    parent = start_job_run("sw", {})
+    run = start_job_run("sw-t0000", {}, parent_run_id=parent.run_id)
+    callback = SweepRuns(epochs=2, sweep_name="sw", trials_dir=str(tmp_path / "trials"), experiment="aniformer")
+    callback.on_trial_complete(0, [], _trial(0, "TERMINATED", {}, {**RAN, "epoch": 2, "pmd_unseen": 560.0}, best=550.5))
+    ended = run.client.get_run(run.run_id)
+    assert ended.info.status == "FINISHED" and ended.data.tags["status"] == "ok"
+    assert ended.data.metrics == {"best_pmd_unseen": 550.5, "predicted_memory_gb": 0.862}
+    assert [m.step for m in run.client.get_metric_history(run.run_id, "best_pmd_unseen")] == [2]
+    rows = [{"mlflow_run_id": run.run_id, "status": "ok"}, {"mlflow_run_id": "f" * 32, "status": "skipped_memory"},
+            {"mlflow_run_id": "", "status": "failed"}]
+    link = compare_link(parent, rows)
+    experiment = parent.client.get_run(parent.run_id).info.experiment_id
+    assert link == (f"http://127.0.0.1:5000/#/compare-runs?runs=%5B%22{run.run_id}%22%5D"
+                    f"&experiments=%5B%22{experiment}%22%5D")
+    assert compare_link(parent, rows[1:]) is None
+
+
 # ---------------------------------------------------------------- end to end on the Ray cluster
 
 SWEEP = ["sweep.num_samples=3", "sweep.max_concurrent=1", "sweep.search=optuna", "sweep.seed=1",
