@@ -17,13 +17,19 @@ naming one (relative to the ablation config), plus::
 A variant may change anything but the budget: `train.epochs`, `train.batch_size` and
 `data.pairs_per_epoch` stay the base config's. Every variant is evaluated on pairs drawn with the
 same seed, with the vertex shuffling it was trained with (the copy-driver on unshuffled pairs).
+
+`log_pmd_table` logs such a table ({row: {split: PMD}}, the ablation's or jobs/evaluate.py's) into an
+MLflow run as an MLflow table: the run's Artifacts tab shows it as a table, `mlflow.load_table` reads it
+back, and the experiment's Evaluation view lines up the tables of several runs.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
-from collections.abc import Sequence
+import tempfile
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -97,3 +103,33 @@ def variant_specs(base: dict, ablation: AblationConfig) -> dict:
                                 f"base {theirs}); every variant trains with the base config's budget")
         specs[name] = spec
     return specs
+
+
+PMD_TABLE = "pmd_table.json"
+
+
+def log_pmd_table(tracker, table: Mapping[str, Mapping[str, float]], splits: Sequence[str],
+                  artifact_file: str = f"ablation/{PMD_TABLE}", notes: Mapping[str, str] | None = None) -> str:
+    """Log `table` ({row: {split: PMD x1e-4}}) into the run of `tracker` as an MLflow table at
+    `artifact_file` (a `.json` path): columns `method`, one per split, and `notes` (e.g. a variant's
+    overrides) as a last `about` column when given. Written as `mlflow.log_table` writes one (pandas
+    "split" JSON, listed in the run's `mlflow.loggedArtifacts` tag), but replaced, not appended to, when
+    the same run logs it again (a resumed job). Returns `artifact_file`."""
+    import pandas as pd
+    from mlflow.utils.mlflow_tags import MLFLOW_LOGGED_ARTIFACTS
+
+    if not artifact_file.endswith(".json"):
+        raise ValueError(f"artifact_file must end in .json, got {artifact_file!r}")
+    rows = [{"method": row, **{split: float(values[split]) for split in splits},
+             **({"about": notes.get(row, "")} if notes else {})} for row, values in table.items()]
+    frame = pd.DataFrame(rows, columns=["method", *splits, *(["about"] if notes else [])])
+    directory, _, name = artifact_file.rpartition("/")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / name
+        frame.to_json(path, orient="split", index=False)
+        tracker.log_artifact(path, directory or None)
+    logged = json.loads(tracker.client.get_run(tracker.run_id).data.tags.get(MLFLOW_LOGGED_ARTIFACTS, "[]"))
+    entry = {"path": artifact_file, "type": "table"}
+    if entry not in logged:
+        tracker.set_tags({MLFLOW_LOGGED_ARTIFACTS: json.dumps([*logged, entry])})
+    return artifact_file

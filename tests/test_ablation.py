@@ -94,6 +94,30 @@ def test_bad_ablation_configs_fail_with_one_line(tmp_path):
     assert (spec.train.epochs, spec.train.lr, spec.model.heads) == (1, 0.5, 2)
 
 
+def test_pmd_table_is_an_mlflow_table_replaced_when_logged_again(tmp_path, monkeypatch):
+    """log_pmd_table: what `mlflow.load_table` reads and the UI's artifact view shows as a table; a
+    resumed job logging it again replaces it (MlflowClient.log_table would append the rows)."""
+    from pipeline.ablation import log_pmd_table
+    from pipeline.tracking import start_job_run
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    tracker = start_job_run("abl", {})
+    table = {"AniFormer (full)": {"seen": 12.5, "unseen": 14.25}, "copy-driver": {"seen": 40.0, "unseen": 41.0}}
+    log_pmd_table(tracker, table, ["seen", "unseen"], notes={"AniFormer (full)": "(base config)"})
+    table["AniFormer (full)"]["unseen"] = 13.0
+    path = log_pmd_table(tracker, table, ["seen", "unseen"], notes={"AniFormer (full)": "(base config)"})
+    experiment = tracker.client.get_run(tracker.run_id).info.experiment_id
+    loaded = tracker.client.load_table(experiment, path, run_ids=[tracker.run_id])
+    assert list(loaded.columns) == ["method", "seen", "unseen", "about"]
+    assert loaded.to_dict("records") == [
+        {"method": "AniFormer (full)", "seen": 12.5, "unseen": 13.0, "about": "(base config)"},
+        {"method": "copy-driver", "seen": 40.0, "unseen": 41.0, "about": ""}]
+    tags = tracker.client.get_run(tracker.run_id).data.tags
+    assert json.loads(tags["mlflow.loggedArtifacts"]) == [{"path": "ablation/pmd_table.json", "type": "table"}]
+    with pytest.raises(ValueError, match=".json"):
+        log_pmd_table(tracker, table, ["seen"], artifact_file="ablation/pmd.csv")
+
+
 @pytest.mark.slow
 @pytest.mark.ray
 def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address):
