@@ -197,6 +197,14 @@ def _on_sigterm(signum, frame):
     raise SystemExit(143)
 
 
+def exit_on_sigterm() -> None:
+    """(Re)install `run`'s SIGTERM handler: exit 143 with one line. A job calls it again after
+    `ray.init`, which installs a handler of its own (it prints a stack and kills the process)."""
+    import signal
+
+    signal.signal(signal.SIGTERM, _on_sigterm)
+
+
 def terminated() -> bool:
     """Whether this process was sent SIGTERM (`ray job stop`, kill) while `run` ran its job."""
     return _terminated

@@ -21,7 +21,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import RunJobParser, UserError, run  # noqa: E402
+from aniformer.cli import RunJobParser, UserError, exit_on_sigterm, run  # noqa: E402
 
 
 def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: str, parent_run_id: str,
@@ -129,6 +129,7 @@ def main(argv: list[str]) -> None:
 
     quiet_mlflow()
     connect()
+    exit_on_sigterm()  # after ray.init, which installs its own handler
     first = next(iter(specs.values()))
     _, faces = prepare_bank(first.data, bank, generate=args.bank is None)
     variants = {slug(row): " ".join(overrides) or "(base)" for row, overrides in ablation.variants.items()}

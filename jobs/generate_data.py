@@ -24,7 +24,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import ArgumentParser, UserError, load_config, run, staged_output_dir  # noqa: E402
+from aniformer.cli import ArgumentParser, UserError, exit_on_sigterm, load_config, run, staged_output_dir  # noqa: E402
 from aniformer.files import claim_output  # noqa: E402
 
 
@@ -85,6 +85,7 @@ def main(argv: list[str]) -> None:
 
             logging.getLogger("ray.data").setLevel(logging.ERROR)  # our progress bar, not Ray Data's logs
             connect()
+            exit_on_sigterm()  # after ray.init, which installs its own handler
             manifest = data.generate_bank(cfg, tmp, workers=args.workers, progress=not args.no_progress)
     seconds = time.perf_counter() - start
     c = manifest["counts"]

@@ -20,7 +20,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import RunJobParser, load_config, run  # noqa: E402
+from aniformer.cli import RunJobParser, exit_on_sigterm, load_config, run  # noqa: E402
 
 
 def main(argv: list[str]) -> None:
@@ -50,6 +50,7 @@ def main(argv: list[str]) -> None:
     )
 
     connect()
+    exit_on_sigterm()  # after ray.init, which installs its own handler
     manifest, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
     vertices = int(manifest["num_vertices"]) if manifest else int(faces.max()) + 1  # a stream: its topology's
     restore = experiment_exists(out, name)

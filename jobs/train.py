@@ -20,7 +20,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import RunJobParser, load_config, run  # noqa: E402
+from aniformer.cli import RunJobParser, exit_on_sigterm, load_config, run  # noqa: E402
 
 
 def main(argv: list[str]) -> None:
@@ -39,6 +39,7 @@ def main(argv: list[str]) -> None:
 
     quiet_mlflow()
     connect()
+    exit_on_sigterm()  # after ray.init, which installs its own handler
     _, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
     tracker = start_job_run(name, spec.to_dict(), experiment=args.experiment, out=out)
     # `ray job stop` and kill send SIGTERM: `run` makes it exit 143, the run ends KILLED (never RUNNING).

@@ -178,9 +178,8 @@ def train_func(loop_config: dict) -> None:
     scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, list(cfg.milestones), cfg.lr_decay)
     start_epoch, step = 0, 0
     checkpoint = ray.train.get_checkpoint()
-    if checkpoint:
-        with checkpoint.as_directory() as directory:
-            state = load_checkpoint(directory)
+    state = restore_state(checkpoint) if checkpoint else None
+    if state:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
@@ -262,6 +261,33 @@ def train_func(loop_config: dict) -> None:
             ray.train.report(metrics, checkpoint=report_checkpoint)
 
 
+def restore_state(checkpoint: ray.train.Checkpoint) -> dict | None:
+    """The state to resume from: Ray's latest checkpoint, or, if that one is unreadable (truncated by
+    a crash or a full disk), the newest intact checkpoint beside it; None (start afresh, said in the
+    log) if none is intact."""
+    with checkpoint.as_directory() as directory:
+        try:
+            return load_checkpoint(directory)
+        except UserError as e:
+            problem = str(e)
+    import pyarrow.fs
+
+    if not isinstance(checkpoint.filesystem, pyarrow.fs.LocalFileSystem):
+        raise UserError(f"cannot resume: {problem}")
+    latest = Path(checkpoint.path)
+    for candidate in sorted(latest.parent.glob("checkpoint_*"), reverse=True):  # names sort by time
+        if candidate != latest and candidate.is_dir():
+            try:
+                state = load_checkpoint(candidate)
+            except UserError:
+                continue
+            print(f"resume: {problem}; resuming from the newest intact checkpoint, {candidate.name} "
+                  f"(epoch {state['epoch']})", flush=True)
+            return state
+    print(f"resume: {problem}, and no other checkpoint of {latest.parent} is intact: starting afresh", flush=True)
+    return None
+
+
 def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
                   faces: np.ndarray, *, loop=train_func, loop_config: dict | None = None,
                   callbacks: list | None = None) -> TorchTrainer:
@@ -305,6 +331,39 @@ def fit(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracke
     return build_trainer(spec, bank_dir, storage, name, tracker, faces).fit()
 
 
+def root_cause(error: BaseException) -> BaseException:
+    """The exception at the bottom of Ray's wrappers: a worker group's lowest failed rank, a controller's
+    failure, a task error's cause, each exception's `__cause__`."""
+    seen = set()
+    while id(error) not in seen:
+        seen.add(id(error))
+        failures = getattr(error, "worker_failures", None)
+        inner = (failures[min(failures)] if failures else None) or getattr(error, "controller_failure", None) \
+            or getattr(error, "cause", None) or error.__cause__
+        if not isinstance(inner, BaseException):
+            break
+        error = inner
+    return error
+
+
+def ray_logs() -> str:
+    """Where this Ray session's logs are (the driver's node), for error messages."""
+    try:
+        return ray._private.worker.global_worker.node.get_logs_dir_path()
+    except Exception:
+        return "/tmp/ray/session_latest/logs on the head node"
+
+
+def training_failure(error: BaseException) -> str:
+    """One line for a failed `fit()`: the root cause, which worker, and where the logs are."""
+    cause = root_cause(error)
+    failures = getattr(error, "worker_failures", None)
+    where = f" on worker rank {min(failures)}" if failures else ""
+    text = " ".join(str(cause).split()) if str(cause).strip() else ""
+    detail = text if isinstance(cause, UserError) else f"{type(cause).__name__}" + (f": {text}" if text else "")
+    return f"training failed{where}: {detail[:300]} (logs: {ray_logs()})"
+
+
 def best_checkpoint(result: ray.train.Result) -> ray.train.Checkpoint:
     scored = [(m[SCORE], c) for c, m in (result.best_checkpoints or []) if math.isfinite(m.get(SCORE, math.nan))]
     return min(scored, key=lambda x: x[0])[1] if scored else result.checkpoint
@@ -318,9 +377,12 @@ def train_job(spec: RunSpec, bank_dir: Path, out: Path, name: str, tracker: Trac
 
     from pipeline.tracking import CHECKPOINT_ARTIFACT
 
-    result = fit(spec, bank_dir, out / "ray", name, tracker, faces)
+    try:
+        result = fit(spec, bank_dir, out / "ray", name, tracker, faces)
+    except ray.train.TrainingFailedError as e:  # Ray Train v2's fit() raises what a worker or the controller did
+        raise UserError(training_failure(e)) from None
     if result.error:
-        raise UserError(f"training failed: {type(result.error).__name__}: {str(result.error).splitlines()[0]}")
+        raise UserError(training_failure(result.error))
     for checkpoint, filename in ((best_checkpoint(result), "best.pt"), (result.checkpoint, "last.pt")):
         # Renamed into place: whatever stands at OUT/filename (a symlink too) is replaced, never written through.
         with checkpoint.as_directory() as directory, atomic_path(out / filename) as tmp:

@@ -35,24 +35,44 @@ def tiny_bank(tmp_path_factory, ray_cluster, repo_root):
 
 
 def start_job(repo_root, ray_address, out: Path, bank: Path, *overrides: str) -> subprocess.Popen:
+    """The job as a subprocess; its output goes to a log file beside `out` (a pipe nobody reads while a
+    test polls can fill up and block the job). `finish` and `output` read it."""
     env = {**os.environ, "RAY_ADDRESS": ray_address,
            "MLFLOW_TRACKING_URI": f"sqlite:///{out.parent / 'mlflow.db'}"}
     cmd = [sys.executable, str(repo_root / "jobs/train.py"), "--config", str(repo_root / "configs/tiny.yaml"),
            "--out", str(out), "--bank", str(bank), *overrides]
-    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            cwd=out.parent)
+    log = out.parent / f"{out.name}.{time.monotonic_ns()}.log"
+    with open(log, "w") as f:
+        job = subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, text=True, cwd=out.parent)
+    job.log = log
+    return job
 
 
-def finish(job: subprocess.Popen, timeout: float = 900) -> str:
-    output, _ = job.communicate(timeout=timeout)
-    assert job.returncode == 0, output[-3000:]
-    return output
+def output(job: subprocess.Popen) -> str:
+    return job.log.read_text(errors="replace")
+
+
+def stop(job: subprocess.Popen) -> None:
+    """Kill a job a failed test leaves running (it would hold the shared cluster's CPUs)."""
+    if job.poll() is None:
+        job.kill()
+        job.wait()
+
+
+def finish(job: subprocess.Popen, timeout: float = 900, code: int | None = 0) -> str:
+    """Wait for the job; its exit status must be `code` (None: any failure)."""
+    try:
+        job.wait(timeout=timeout)
+    finally:
+        stop(job)
+    assert job.returncode == code if code is not None else job.returncode != 0, output(job)[-3000:]
+    return output(job)
 
 
 def wait_for_checkpoint(out: Path, job: subprocess.Popen, timeout: float = 600) -> None:
     deadline = time.time() + timeout
     while not list((out / "ray").glob("*/checkpoint_*/checkpoint.pt")):
-        assert job.poll() is None, job.communicate()[0][-3000:]
+        assert job.poll() is None, output(job)[-3000:]
         assert time.time() < deadline, "no checkpoint appeared"
         time.sleep(0.5)
 
@@ -62,7 +82,7 @@ def wait_for_epoch(out: Path, job: subprocess.Popen, epoch: int, timeout: float 
     wait_for_checkpoint(out, job)  # by then the job has created the MLflow tables: no migration race
     deadline = time.time() + timeout
     while True:
-        assert job.poll() is None, job.communicate()[0][-3000:]
+        assert job.poll() is None, output(job)[-3000:]
         assert time.time() < deadline, f"epoch {epoch} was not reached"
         client, runs = job_runs(out)
         if runs and any(v >= epoch for _, v in logged(client, runs[0], "epoch")):
@@ -123,13 +143,17 @@ def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_
     # STRICT_SPREAD: one training worker is on each node, so one of them dies with `victim`.
     job = start_job(repo_root, ray_address, out, tiny_bank, *TWO_WORKERS, "train.placement_strategy=STRICT_SPREAD",
                     "train.epochs=3", "train.max_failures=3")
+    removed = False
     try:
         wait_for_epoch(out, job, 2)
         ray_cluster.remove_node(victim, allow_graceful=False)  # SIGKILL, like a lost machine
+        removed = True
     finally:
-        ray_cluster.add_node(num_cpus=1, object_store_memory=victim.object_store_memory
-                             if hasattr(victim, "object_store_memory") else 512 * 1024**2)
-        ray_cluster.wait_for_nodes()
+        if removed:  # leave the shared cluster as it was: two nodes
+            ray_cluster.add_node(num_cpus=1, object_store_memory=512 * 1024**2)
+            ray_cluster.wait_for_nodes()
+        else:
+            stop(job)
     finish(job)
 
     client, (run,) = job_runs(out)
@@ -150,8 +174,7 @@ def test_interrupted_driver_resumes_when_run_again(tmp_path, tiny_bank, ray_addr
     # restore. The run logging epoch 2 means the checkpoint of epoch 1 is registered.
     wait_for_epoch(out, job, 2)
     job.send_signal(signal.SIGINT)
-    output, _ = job.communicate(timeout=120)
-    assert job.returncode != 0, output[-2000:]
+    finish(job, timeout=120, code=None)  # Ray Train's own SIGINT handler aborts the run and exits 1
     client, (run,) = job_runs(out)
     assert run.info.status == "KILLED"  # never left RUNNING
 
@@ -215,3 +238,47 @@ def test_training_reads_pairs_in_id_order(tmp_path, tiny_bank, repo_root):
     assert trainer.fit().error is None
     ids = json.loads(record.read_text())
     assert ids == [e * 100_000 + i for e in (0, 1) for i in range(3000)]
+
+
+def test_sigterm_exits_143_with_one_line_and_ends_the_run_killed(tmp_path, tiny_bank, ray_address, repo_root):
+    """`ray job stop` and kill send SIGTERM: exit 143, one line, the MLflow run KILLED, the lock gone."""
+    out = tmp_path / "term"
+    job = start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=3")
+    wait_for_epoch(out, job, 1)
+    job.send_signal(signal.SIGTERM)
+    assert finish(job, timeout=120, code=143).splitlines()[-1] == "terminated (SIGTERM)"
+    client, (run,) = job_runs(out)
+    assert run.info.status == "KILLED"
+    assert not (out / ".lock").exists()
+
+
+def test_a_worker_error_is_one_line_with_its_root_cause_and_the_logs(tmp_path, tiny_bank, ray_address, repo_root):
+    """On CPU no cuDNN attention exists: the worker's forward raises. Ray Train's fit() raises a
+    WorkerGroupError around it; the job prints the root cause in one line and exits 2."""
+    out = tmp_path / "fails"
+    log = finish(start_job(repo_root, ray_address, out, tiny_bank, "train.attention_kernels=[cudnn]",
+                           "train.max_failures=0"), code=2)
+    last = log.strip().splitlines()[-1]
+    assert last.startswith("error: training failed on worker rank 0: RuntimeError: No viable backend for "
+                           "scaled_dot_product_attention"), log[-3000:]
+    assert "(logs: /" in last and "Traceback" not in last
+    client, (run,) = job_runs(out)
+    assert run.info.status == "FAILED"
+
+
+def test_resume_falls_back_to_the_newest_intact_checkpoint(tmp_path, tiny_bank, ray_address, repo_root):
+    """A truncated latest Ray checkpoint (a crash or a full disk while it was written): the rerun resumes
+    from the one before it instead of failing every retry."""
+    out = tmp_path / "trunc"
+    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=2"))
+    first, latest = sorted(p for p in (out / "ray" / "trunc").glob("checkpoint_*") if p.is_dir())
+    assert load_checkpoint(first)["epoch"] == 1 and load_checkpoint(latest)["epoch"] == 2
+    payload = (latest / "checkpoint.pt").read_bytes()
+    (latest / "checkpoint.pt").write_bytes(payload[: len(payload) // 2])
+
+    log = finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=3"))
+    assert f"resuming from the newest intact checkpoint, {first.name} (epoch 1)" in log, log[-3000:]
+    client, (run,) = job_runs(out)  # the same MLflow run, continued
+    assert [v for _, v in logged(client, run, "resumed_from_epoch")] == [1.0]
+    assert sorted(v for _, v in logged(client, run, "epoch")) == [1.0, 2.0, 2.0, 3.0]
+    assert load_checkpoint(out / "last.pt")["epoch"] == 3 and run.info.status == "FINISHED"
