@@ -18,6 +18,7 @@ import contextlib
 import ctypes
 import errno
 import fcntl
+import glob
 import json
 import os
 import re
@@ -171,18 +172,22 @@ def release_locks() -> None:
 
 def protect_inputs(out: str | os.PathLike, inputs: Mapping[str, str | os.PathLike | None]) -> None:
     """`UserError` if `out` is, contains, or lies inside one of `inputs` ({flag: path}; None and
-    paths that do not exist, such as an MLflow run id, are skipped). Paths are compared after
-    resolving symlinks, so a link cannot hide an input inside `out`."""
+    paths that do not exist, such as an MLflow run id, are skipped; a glob stands for the files it
+    matches). Paths are compared after resolving symlinks, so a link cannot hide an input inside `out`."""
     from aniformer.cli import UserError
 
     target = Path(os.path.expanduser(out)).resolve()
+    given = []
     for flag, value in inputs.items():
         if value is None or str(value) == "":
             continue
-        given = Path(os.path.expanduser(value))
-        if not given.exists():
-            continue
-        real = given.resolve()
+        path = os.path.expanduser(value)
+        if not os.path.exists(path) and glob.has_magic(str(path)):  # a glob (animate --driving 'dir/*.obj')
+            given += [(flag, value, Path(match)) for match in sorted(glob.glob(str(path)))]
+        elif os.path.exists(path):
+            given.append((flag, value, Path(path)))
+    for flag, value, path in given:
+        real = path.resolve()
         if real == target:
             raise UserError(f"--out {out} is the input {flag} {value}; choose another --out")
         if real.is_relative_to(target):

@@ -374,6 +374,11 @@ def test_protect_inputs(tmp_path):
         lambda: protect_inputs(run_dir / "bank" / "anim", {"--driving": run_dir / "bank"}))
     protect_inputs(tmp_path / "elsewhere", {"--checkpoint": run_dir / "best.pt", "--bank": run_dir / "bank"})
     protect_inputs(run_dir, {"--checkpoint": "0123456789abcdef0123456789abcdef", "--bank": None})  # a run id
+    (run_dir / "frames").mkdir()
+    (run_dir / "frames" / "f0.obj").write_text("v 0 0 0")
+    assert "contains the input --driving" in refusal(  # a glob: the files it matches
+        lambda: protect_inputs(run_dir, {"--driving": str(run_dir / "frames" / "*.obj")}))
+    protect_inputs(run_dir / "frames" / "anim", {"--driving": str(run_dir / "frames" / "*.obj")})
 
 
 def test_export_meshes_overwrite_never_deletes_its_bank(bank, capsys, job_main):
