@@ -170,15 +170,16 @@ def release_locks() -> None:
         lock.release()
 
 
-def protect_inputs(out: str | os.PathLike, inputs: Mapping[str, str | os.PathLike | None]) -> None:
-    """`UserError` if `out` is, contains, or lies inside one of `inputs` ({flag: path}; None and
+def protect_inputs(out: str | os.PathLike, inputs: Mapping[str, str | os.PathLike | None | list]) -> None:
+    """`UserError` if `out` is, contains, or lies inside one of `inputs` ({flag: path or list of paths}; None and
     paths that do not exist, such as an MLflow run id, are skipped; a glob stands for the files it
     matches). Paths are compared after resolving symlinks, so a link cannot hide an input inside `out`."""
     from aniformer.cli import UserError
 
     target = Path(os.path.expanduser(out)).resolve()
     given = []
-    for flag, value in inputs.items():
+    flat = [(flag, v) for flag, value in inputs.items() for v in (value if isinstance(value, (list, tuple)) else [value])]
+    for flag, value in flat:
         if value is None or str(value) == "":
             continue
         path = os.path.expanduser(value)
@@ -198,7 +199,7 @@ def protect_inputs(out: str | os.PathLike, inputs: Mapping[str, str | os.PathLik
 
 
 def claim_output(out: str | os.PathLike, overwrite: bool,
-                 inputs: Mapping[str, str | os.PathLike | None] = ()) -> OutputLock:
+                 inputs: Mapping[str, str | os.PathLike | None | list] = ()) -> OutputLock:
     """What a job does with its `--out` before any work: refuse one that is, holds or lies inside an
     input, lock it (one job per output), then refuse a non-empty one unless `overwrite`."""
     from aniformer.cli import check_output_dir

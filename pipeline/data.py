@@ -1124,7 +1124,7 @@ class Bank:
 
 def load_bank(bank_dir: str | os.PathLike, verify: bool = True) -> Bank:
     """Read every shard of a bank into one array, each checked as it is read: its SHA-256 against the
-    manifest's (``verify``, the default; each file is read once, the digest costs about 0.1 s per
+    manifest's (``verify``, the default; each file is read once, the digest costs about 0.07 s per
     100 MB, see docs/benchmarks.md), its vertex count, rows, and the sequence, identity, motion and
     frame of every row.
     Any failure is one `UserError` line naming the file."""

@@ -379,6 +379,8 @@ def test_protect_inputs(tmp_path):
     assert "contains the input --driving" in refusal(  # a glob: the files it matches
         lambda: protect_inputs(run_dir, {"--driving": str(run_dir / "frames" / "*.obj")}))
     protect_inputs(run_dir / "frames" / "anim", {"--driving": str(run_dir / "frames" / "*.obj")})
+    assert "contains the input --compare" in refusal(  # a list: each of them
+        lambda: protect_inputs(run_dir, {"--compare": ["0123456789abcdef0123456789abcdef", run_dir / "best.pt"]}))
 
 
 def test_export_meshes_overwrite_never_deletes_its_bank(bank, capsys, job_main):
