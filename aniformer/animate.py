@@ -147,7 +147,7 @@ def _center(windows: torch.Tensor, mode: str) -> torch.Tensor:
     return windows
 
 
-@torch.inference_mode()
+@torch.no_grad()  # not inference_mode: roma caches tensors made here, and autograd (registration) refuses them
 def animate_sequence(
     model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     driving: np.ndarray | torch.Tensor,

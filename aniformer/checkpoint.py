@@ -17,8 +17,15 @@ from torch import nn
 from aniformer.baselines import build_model
 from aniformer.cli import UserError, atomic_path
 
+#: The model shipped with the project (docs/model_card.md), what ``--checkpoint pretrained`` names.
+PRETRAINED = Path(__file__).resolve().parents[1] / "models" / "aniformer.pt"
 KEYS = ("config", "model", "optimizer", "scheduler", "epoch", "step", "rng")
 FILENAME = "checkpoint.pt"
+
+
+def checkpoint_spec(spec: str) -> str:
+    """A job's ``--checkpoint``: ``pretrained`` is the shipped model, anything else as given."""
+    return str(PRETRAINED) if spec == "pretrained" else spec
 
 
 def unwrap(model: nn.Module) -> nn.Module:

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from aniformer.mesh import center_bbox
 from aniformer.metrics import PMD_SCALE, pmd_per_frame
 
 Predict = Callable[[torch.Tensor, torch.Tensor, torch.Tensor | None], torch.Tensor]
@@ -51,7 +52,7 @@ def model_contender(name: str, model: torch.nn.Module, device: str | torch.devic
     device = torch.device(device)
     model = model.to(device).eval()
 
-    @torch.inference_mode()
+    @torch.no_grad()  # not inference_mode: roma caches tensors made here, and autograd (registration) refuses them
     def predict(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None) -> torch.Tensor:
         return model(driving.to(device), target.to(device), None if faces is None else faces.to(device)).float().cpu()
 
@@ -265,3 +266,45 @@ def plot_sweep(sweep: dict[str, dict[float, float]], path, split: str) -> None:
         fig.savefig(path, format="png")
     finally:
         plt.close(fig)
+
+
+def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[str], *, pairs: int,
+                topology: str | None = None, device: str | torch.device = "cpu", batch_size: int = 8,
+                progress: Callable[[], None] | None = None) -> dict[str, dict[str, np.ndarray]]:
+    """{row: {variant: PMD x1e4 per pair}} on targets of other topologies (``synth.variants``):
+    the model and the deformation transfer alone, each through the registration of the target
+    onto ``topology`` (default: the stream's) where its faces are not that topology's; the
+    copy-driver carried to the target's vertices; the static target."""
+    from aniformer.registration import Correspondence
+    from aniformer.synth.stream import _body_model
+    from aniformer.synth.variants import variant_pairs
+    from aniformer.transfer import deformation_transfer
+
+    topology = topology or stream.topology
+    faces = torch.from_numpy(_body_model(topology).faces)
+    frames = model.config.output_frames()
+    predict = model_contender("model", model, device).predict
+    rows = {"model": lambda d, t: predict(d, t, faces), "deformation transfer": lambda d, t: deformation_transfer(d, t, faces)}
+    scores = {name: {v: [] for v in variants} for name in (*rows, "copy-driver", "static target")}
+
+    def score(row: str, variant: str, pred: np.ndarray, truth: np.ndarray) -> None:
+        scores[row][variant].append(float(np.square(pred - truth[frames]).sum(-1).mean()) * PMD_SCALE)
+
+    for lo in range(0, pairs, batch_size):
+        for pair in variant_pairs(stream, split, 0, range(lo, min(pairs, lo + batch_size)), variants):
+            driving = torch.from_numpy(pair["driving"][None])
+            for variant in variants:
+                case = pair[variant]
+                same = np.array_equal(case["faces"], faces.numpy())
+                correspondence = None if same else Correspondence(case["target"], case["faces"], topology)
+                target = case["target"] if same else correspondence.template
+                for name, run in rows.items():
+                    posed = run(driving, torch.from_numpy(target[None]))[0].float().numpy()
+                    pred = posed if same else correspondence.from_template(posed)
+                    score(name, variant, center_bbox(pred), case["ground_truth"])
+                score("copy-driver", variant, case["copy_driver"][frames], case["ground_truth"])
+                score("static target", variant, np.broadcast_to(case["target"], case["ground_truth"].shape)[frames],
+                      case["ground_truth"])
+            if progress is not None:
+                progress()
+    return {row: {v: np.asarray(x) for v, x in values.items()} for row, values in scores.items()}

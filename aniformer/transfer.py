@@ -24,16 +24,23 @@ from __future__ import annotations
 
 import functools
 
+import numpy as np
 import roma
 import torch
+
+
+def mesh_edges(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """The unique edges ``(i, j)``, ``i < j``, of a triangle mesh (``num_vertices`` is for the caller's checks)."""
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    i, j = np.unique(edges, axis=0).T
+    return np.ascontiguousarray(i, np.int64), np.ascontiguousarray(j, np.int64)
 
 
 @functools.lru_cache(maxsize=8)
 def _topology(faces_bytes: bytes, num_faces: int, num_vertices: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(edge starts, edge ends, Cholesky factor of L + eps I) of a triangle mesh topology."""
-    faces = torch.frombuffer(bytearray(faces_bytes), dtype=torch.int64).reshape(num_faces, 3)
-    edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(dim=1).values
-    i, j = torch.unique(edges, dim=0).unbind(1)
+    faces = np.frombuffer(faces_bytes, dtype=np.int64).reshape(num_faces, 3)
+    i, j = (torch.from_numpy(e) for e in mesh_edges(faces, num_vertices))
     adjacency = torch.zeros(num_vertices, num_vertices, dtype=torch.float64)
     adjacency[i, j] = adjacency[j, i] = 1.0
     laplacian = torch.diag(adjacency.sum(1)) - adjacency
@@ -41,6 +48,23 @@ def _topology(faces_bytes: bytes, num_faces: int, num_vertices: int) -> tuple[to
     factor = torch.linalg.cholesky(laplacian + 1e-8 * laplacian.diagonal().mean() * torch.eye(num_vertices,
                                                                                             dtype=torch.float64))
     return i, j, factor
+
+
+def _rotations(source: torch.Tensor, posed: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
+    """Per vertex, the rotation that best turns the source's one-ring edges onto the posed mesh's."""
+    source_edges, posed_edges = source[..., j, :] - source[..., i, :], posed[..., j, :] - posed[..., i, :]
+    outer = posed_edges[..., :, None] * source_edges[..., None, :]  # sum of d e^T -> R with R e ~ d
+    cross = torch.zeros(*outer.shape[:-3], source.shape[-2], 3, 3, dtype=outer.dtype, device=outer.device)
+    cross.index_add_(cross.dim() - 3, i, outer).index_add_(cross.dim() - 3, j, outer)
+    return roma.special_procrustes(cross)
+
+
+def vertex_rotations(source: torch.Tensor, posed: torch.Tensor, faces: np.ndarray) -> torch.Tensor:
+    """``(..., V, 3, 3)``: per vertex of a mesh moved from ``source (..., V, 3)`` to ``posed (..., V, 3)``
+    (broadcast), the rotation of its one-ring."""
+    i, j = (torch.from_numpy(e).to(posed.device) for e in mesh_edges(np.asarray(faces, np.int64), posed.shape[-2]))
+    source, posed = torch.broadcast_tensors(source.double(), posed.double())
+    return _rotations(source, posed, i, j)
 
 
 def deformation_transfer(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -56,12 +80,8 @@ def deformation_transfer(driving: torch.Tensor, target: torch.Tensor, faces: tor
     device = driving.device
     i, j, factor = i.to(device), j.to(device), factor.to(device)
     x = target.detach().double()[:, None].expand(B, T, V, 3)
-    d = driving.detach().double()
-    source_edges, driving_edges = x[..., j, :] - x[..., i, :], d[..., j, :] - d[..., i, :]  # (B, T, E, 3)
-    outer = driving_edges[..., :, None] * source_edges[..., None, :]  # sum of d e^T -> R with R e ~ d
-    cross = torch.zeros(B, T, V, 3, 3, dtype=torch.float64, device=device)
-    cross.index_add_(2, i, outer).index_add_(2, j, outer)
-    rotation = roma.special_procrustes(cross)
+    rotation = _rotations(x, driving.detach().double(), i, j)
+    source_edges = x[..., j, :] - x[..., i, :]
     turned = 0.5 * ((rotation[..., i, :, :] + rotation[..., j, :, :]) @ source_edges[..., None])[..., 0]
     rhs = torch.zeros(B, T, V, 3, dtype=torch.float64, device=device)
     rhs.index_add_(2, i, -turned).index_add_(2, j, turned)

@@ -1,14 +1,17 @@
 """Animate a target mesh with a driving mesh sequence of any length using a trained checkpoint.
 
+    python jobs/animate.py --target me.obj --driving clips/jump/ --out anim/jump     # the shipped model
     python jobs/animate.py --checkpoint runs/tiny/best.pt --target me.obj --driving clips/jump/ --out anim/jump
     python jobs/animate.py --checkpoint 3f2a...c9 --target me.ply --driving 'clips/run/frame_*.obj' --out anim/run
 
 ``--driving`` is a directory of OBJ/PLY/... frames or a glob, in natural order (frame_2 before
 frame_10); every frame must have the first frame's vertices and faces. Target and driver may have
-any vertex counts (also other than training). Inputs are z up, in ``--unit`` (default m). A T-frame
-window slides over the sequence one frame at a time; overlapping predictions of a frame are
-averaged (``--combine mean``) or the window centred on it is used (``--combine center``, always for
-a regression-head model); see docs/animate.md. The result is placed in world space where the
+any vertex count, order and connectivity: a mesh that is not the model's Anny topology is first
+registered onto it (aniformer/registration.py: Anny's body fitted to the mesh, a few seconds; the
+result is carried back to the mesh's own vertices). Inputs are human bodies standing z up, in
+``--unit`` (default m). A T-frame window slides over the sequence one frame at a time; overlapping
+predictions of a frame are averaged (``--combine mean``) or the window centred on it is used
+(``--combine center``, always for a regression-head model); see docs/animate.md. The result is placed in world space where the
 driver is (its root motion, scaled to the target's height, feet on the driver's floor);
 ``--center`` keeps every frame bounding-box centred instead.
 
@@ -35,6 +38,7 @@ if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from aniformer.animate import FPS_SIDECARS, FRAMES_PER_MESH, MAX_GLB_BYTES, MAX_MORPH_TARGETS  # noqa: E402
+from aniformer.checkpoint import checkpoint_spec  # noqa: E402
 from aniformer.cli import ArgumentParser, UserError, check_output_dir, run, staged_output_dir  # noqa: E402
 from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS  # noqa: E402
 from jobs.evaluate import resolve_device  # noqa: E402
@@ -44,7 +48,9 @@ from pipeline.tracking import resolve_checkpoint  # noqa: E402
 def parse_args(argv: list[str]) -> argparse.Namespace:
     p = ArgumentParser(prog="animate.py", description=__doc__.split("\n\n")[0],
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
-    p.add_argument("--checkpoint", required=True, metavar="CKPT", help="checkpoint file or MLflow run id")
+    p.add_argument("--checkpoint", default="pretrained", metavar="CKPT",
+                   help="checkpoint file, MLflow run id, or 'pretrained' (the default: models/aniformer.pt, "
+                        "see docs/model_card.md)")
     p.add_argument("--target", required=True, metavar="MESH", help="the mesh to animate (OBJ, PLY, ...)")
     p.add_argument("--driving", required=True, metavar="DIR_OR_GLOB", help="driving frames: a directory or a glob")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
@@ -54,6 +60,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--unit", choices=tuple(UNITS), default="m", help="unit of the target and driving files (default m)")
     p.add_argument("--name", default=None,
                    help="name of the glTF node, mesh and animation (default: TARGET_DRIVING from the file names)")
+    p.add_argument("--template", metavar="TOPOLOGY",
+                   help="Anny topology that meshes of other topologies are registered onto (default: the "
+                        "checkpoint's training topology)")
     p.add_argument("--combine", choices=("mean", "center"), default="mean",
                    help="how overlapping windows combine (default: mean)")
     p.add_argument("--input-center", choices=("mesh", "window", "none"), default=None,
@@ -123,25 +132,47 @@ def main(argv: list[str]) -> None:
         raise UserError(f"animation.glb would be {size / 2**30:.1f} GiB ({len(files):,} frames x {len(target):,} "
                         "vertices); glTF clients load at most 2 GiB: cut the clip, or --no-glb for the OBJs only")
     with tempfile.TemporaryDirectory(prefix="aniformer-animate-") as scratch:
-        model, state = model_from_checkpoint(resolve_checkpoint(args.checkpoint, Path(scratch)))
+        model, state = model_from_checkpoint(resolve_checkpoint(checkpoint_spec(args.checkpoint), Path(scratch)))
     config = model.config
     input_center = args.input_center or (state["config"].get("data") or {}).get("center", "mesh")
     with tqdm(total=len(files), unit="frame", desc="load driving", disable=args.no_progress, file=sys.stderr) as bar:
         driving, driving_faces = load_driving(files, args.max_vertices, args.unit, progress=bar.update)
     loaded = time.perf_counter()
 
-    if getattr(config, "output", "absolute") != "absolute" and (
-            driving.shape[1] != len(target) or not np.array_equal(driving_faces, target_faces)):
-        raise UserError(f"this model (output={config.output}) needs driver and target of one topology in one vertex "
-                        f"order; got {driving.shape[1]:,} and {len(target):,} vertices"
-                        + ("" if driving.shape[1] != len(target) else " with different faces"))
-    model = functools.partial(model.to(device), faces=torch.from_numpy(np.asarray(target_faces, np.int64)).to(device))
+    registrations = {}
+    if getattr(config, "output", "absolute") != "absolute":  # the model needs vertex correspondence
+        from aniformer.registration import Correspondence
+        from aniformer.synth.bodies import TOPOLOGIES, BodyModel
+
+        topology = args.template or (state["config"].get("data") or {}).get("topology")
+        if topology not in TOPOLOGIES:
+            raise UserError(f"--template must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
+        faces = BodyModel(topology).faces
+        for role, vertices, mesh_faces in (("driver", driving[0], driving_faces), ("target", target, target_faces)):
+            if not np.array_equal(mesh_faces, faces):  # another vertex count, order or connectivity
+                began = time.perf_counter()
+                registrations[role] = Correspondence(vertices, mesh_faces, topology)
+                fit = registrations[role]
+                print(f"registered the {role} ({len(vertices):,} vertices) onto Anny {topology} ({len(faces):,} "
+                      f"vertices): {fit.rms * 1000:.1f} mm RMS surface distance, {time.perf_counter() - began:.1f} s",
+                      file=sys.stderr)
+                if fit.rms > 0.03:
+                    print(f"warning: the {role} fits Anny's body poorly ({fit.rms * 1000:.0f} mm RMS): is it a "
+                          "human, upright and z up in --unit?", file=sys.stderr)
+        model_driving = registrations["driver"].to_template(driving) if "driver" in registrations else driving
+        model_target = registrations["target"].template if "target" in registrations else target
+    else:
+        faces, model_driving, model_target = target_faces, driving, target
+    model = functools.partial(model.to(device), faces=torch.from_numpy(np.asarray(faces, np.int64)).to(device))
     outputs = config.output_frames()
     combine = args.combine if outputs == slice(None) else "center"
     total = num_windows(len(driving), config.window, outputs, combine)
     with tqdm(total=total, unit="window", desc="animate", disable=args.no_progress, file=sys.stderr) as bar:
-        result = animate_sequence(model, driving, target, window=config.window, outputs=outputs, combine=combine,
-                                  center=input_center, batch_size=args.batch_size, device=device, progress=bar.update)
+        result = animate_sequence(model, model_driving, model_target, window=config.window, outputs=outputs,
+                                  combine=combine, center=input_center, batch_size=args.batch_size, device=device,
+                                  progress=bar.update)
+    if "target" in registrations:
+        result = registrations["target"].from_template(result)
     inferred = time.perf_counter()
     if not np.isfinite(result).all():
         raise UserError(f"the model produced NaN or infinite coordinates ({args.checkpoint}: diverged weights?)")
@@ -175,6 +206,8 @@ def main(argv: list[str]) -> None:
             "name": name, "frames": len(result), "fps": fps, "unit": args.unit,
             "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
             "window": config.window, "combine": combine, "windows": total, "input_center": input_center,
+            "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template)}
+                           for role, fit in registrations.items()},
             "output_centred": args.center,
             "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
             "seconds": {"load": round(loaded - start, 3), "inference": round(inferred - loaded, 3),

@@ -38,10 +38,15 @@ from pipeline.tracking import RUN_ID, quiet_mlflow, resolve_checkpoint  # noqa: 
 def parse_args(argv: list[str]) -> argparse.Namespace:
     p = ArgumentParser(prog="evaluate.py", description=__doc__.split("\n\n")[0],
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
-    p.add_argument("--checkpoint", required=True, metavar="CKPT", help="checkpoint file or MLflow run id")
+    p.add_argument("--checkpoint", required=True, metavar="CKPT",
+                   help="checkpoint file, MLflow run id, or pretrained (models/aniformer.pt)")
     p.add_argument("--out", required=True, metavar="DIR", help="directory for the tables and plots")
     p.add_argument("--bank", metavar="DIR", help="mesh bank (default: bank/ beside the checkpoint; none for a stream)")
     p.add_argument("--topology", help="stream checkpoints: the Anny topology of the pairs (default: the training one)")
+    p.add_argument("--targets", metavar="VARIANTS",
+                   help="stream checkpoints: score targets of other topologies instead of the splits, e.g. "
+                        "same,topology,shuffled,remeshed (aniformer/synth/variants.py), on --target-split")
+    p.add_argument("--target-split", default="characters", help="the split of --targets (default: characters)")
     p.add_argument("--compare", action="append", default=[], metavar="NAME=CKPT",
                    help="a baseline checkpoint (file or run id) as row NAME; repeatable")
     p.add_argument("--name", help="row label of --checkpoint and MLflow run evaluate-NAME (default: from the path)")
@@ -117,7 +122,7 @@ def main(argv: list[str]) -> None:
     check_output_dir(out, args.overwrite)
     device = resolve_device(args.device)
 
-    from aniformer.checkpoint import model_from_checkpoint
+    from aniformer.checkpoint import checkpoint_spec, model_from_checkpoint
     from aniformer.evaluate import (
         Samplers,
         copy_driver_contender,
@@ -133,11 +138,11 @@ def main(argv: list[str]) -> None:
     )
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="aniformer-eval-") as scratch:
-        ckpt_path = resolve_checkpoint(args.checkpoint, Path(scratch))
+        ckpt_path = resolve_checkpoint(checkpoint_spec(args.checkpoint), Path(scratch))
         model, state = model_from_checkpoint(ckpt_path)
         others = []
         for label, spec in compare:
-            other, other_state = model_from_checkpoint(resolve_checkpoint(spec, Path(scratch)))
+            other, other_state = model_from_checkpoint(resolve_checkpoint(checkpoint_spec(spec), Path(scratch)))
             others.append((label, other, other_state, spec))
 
     config = state["config"]
@@ -145,7 +150,9 @@ def main(argv: list[str]) -> None:
     pairs = args.pairs or int(data_cfg.get("eval_pairs", 1000))
     seed = args.seed if args.seed is not None else int(data_cfg.get("seed", 0))
     center = data_cfg.get("center", "mesh")
-    if data_cfg.get("source") == "stream" and not args.bank:
+    if args.targets is not None:
+        source = _target_source(args, data_cfg, center, seed, pairs)
+    elif data_cfg.get("source") == "stream" and not args.bank:
         source = _stream_source(args, data_cfg, center, seed, pairs)
     else:
         if args.topology:
@@ -175,10 +182,18 @@ def main(argv: list[str]) -> None:
     samplers = Samplers(make_sampler, shuffle)
     from tqdm import tqdm
 
-    steps = len(contenders) * (len(splits) + (len(levels) if levels else 0))
-    bar = tqdm(total=steps, unit="split", desc="evaluate", disable=args.no_progress, file=sys.stderr)
-    scores = evaluate_pairs(contenders, samplers, splits, pairs=pairs, batch_size=args.batch_size, seed=seed,
-                            progress=lambda *_: bar.update(1))
+    if args.targets is not None:
+        from aniformer.evaluate import target_pmds
+
+        bar = tqdm(total=pairs, unit="pair", desc="evaluate targets", disable=args.no_progress, file=sys.stderr)
+        scores = target_pmds(model, make_sampler(model.config.window, "none"), args.target_split, splits, pairs=pairs,
+                             device=device, batch_size=args.batch_size, progress=lambda: bar.update(1))
+        scores = {rows[0][0]: scores.pop("model"), **scores}
+    else:
+        steps = len(contenders) * (len(splits) + (len(levels) if levels else 0))
+        bar = tqdm(total=steps, unit="split", desc="evaluate", disable=args.no_progress, file=sys.stderr)
+        scores = evaluate_pairs(contenders, samplers, splits, pairs=pairs, batch_size=args.batch_size, seed=seed,
+                                progress=lambda *_: bar.update(1))
     table = {name: {split: float(v.mean()) for split, v in row.items()} for name, row in scores.items()}
     spread = {name: {split: float(v.std(ddof=1)) if len(v) > 1 else float("nan") for split, v in row.items()}
               for name, row in scores.items()}
@@ -217,7 +232,7 @@ def main(argv: list[str]) -> None:
             run_id = _log_to_mlflow(f"evaluate-{name}", args, tmp, table, sweep, pairs, seed, splits, config)
 
     print(markdown.split("\n\n- ")[0].strip())
-    print(f"evaluated {len(contenders)} models x {len(splits)} splits x {pairs} pairs in {seconds:.1f} s")
+    print(f"evaluated {len(scores)} models x {len(splits)} splits x {pairs} pairs in {seconds:.1f} s")
     print(f"results: {out / 'results.md'}, {out / 'results.csv'}" + (f", {out / 'noise.png'}" if sweep else ""))
     if run_id:
         from pipeline.tracking import tracking_uri
@@ -239,6 +254,26 @@ def _stream_source(args, data_cfg: dict, center: str, seed: int, pairs: int):
 
     descriptions = {name: split.description for name, split in SPLITS.items()}
     return list(SPLITS), descriptions, "none", make_sampler, [], f"stream, topology {topology}"
+
+
+def _target_source(args, data_cfg: dict, center: str, seed: int, pairs: int):
+    """(variants as splits, descriptions, shuffle, make_sampler, notes, data label) of ``--targets``."""
+    from aniformer.synth.stream import SPLITS
+    from aniformer.synth.variants import VARIANTS
+
+    if data_cfg.get("source") != "stream" or args.bank or args.compare or args.noise:
+        raise UserError("--targets scores a stream checkpoint alone: no --bank, --compare or --noise")
+    if args.target_split not in SPLITS:
+        raise UserError(f"--target-split {args.target_split!r}: known splits are {', '.join(SPLITS)}")
+    variants = [v.strip() for v in args.targets.split(",") if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown or not variants:
+        raise UserError(f"--targets: unknown variant(s) {', '.join(unknown) or '(none given)'}; known: {', '.join(VARIANTS)}")
+    splits, descriptions, shuffle, make_sampler, notes, label = _stream_source(args, data_cfg, center, seed, pairs)
+    notes.append(f"Targets of split `{args.target_split}` ({SPLITS[args.target_split].description}); the model and "
+                 "the deformation transfer reach targets of other topologies through aniformer/registration.py, "
+                 "the copy-driver is carried to the target's vertices through the ground-truth correspondence.")
+    return variants, VARIANTS, shuffle, make_sampler, notes, label
 
 
 def _bank_source(args, ckpt_path: Path, data_cfg: dict, center: str, seed: int, pairs: int):

@@ -102,7 +102,7 @@ class BodyModel:
         # The rest shape (blendshapes, bone frames) depends on the identity only: compute it
         # once per distinct identity (clips repeat one identity over all their frames).
         unique, index = torch.unique(identities, dim=0, return_inverse=True)
-        with torch.inference_mode():
+        with torch.no_grad():  # not inference_mode: roma caches tensors made here, and autograd refuses them
             rest = self._model(phenotype_kwargs=unique)  # also poses them at rest: cheap
             transforms, _ = self._model.get_bone_transforms(deltas, rest["rest_bone_poses"][index])
             vertices = self._model.get_skinned_vertices(rest["rest_vertices"][index], transforms)

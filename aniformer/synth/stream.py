@@ -52,6 +52,7 @@ class StreamSplit:
     stream: str  # train | val | test
     description: str
     actions: tuple[str, ...] = TRAIN_ACTIONS
+    rest_targets: float = REST_TARGET_FRACTION  # fraction of targets at rest, the others in a pose of the split
 
 
 SPLITS: dict[str, StreamSplit] = {
@@ -72,6 +73,9 @@ SPLITS: dict[str, StreamSplit] = {
                                   "test: driver and target at the extremes of the adult shape space"),
     "build_mismatch": StreamSplit(TRAIN_FAMILIES, UPRIGHT, "mismatch", "test",
                                   "test: driver and target of opposite builds (short/tall, thin/heavy, weak/muscular)"),
+    "characters": StreamSplit(TRAIN_FAMILIES, UPRIGHT, "mixed", "test",
+                              "test: targets at rest, as characters come (the foreign-topology evaluation)",
+                              rest_targets=1.0),
 }
 TEST_SPLITS = tuple(name for name, s in SPLITS.items() if s.stream == "test")
 
@@ -202,43 +206,60 @@ class StreamPairs:
     def default_pairs(self, split: str) -> int:
         return self.pairs_per_epoch if split == "train" else self.eval_pairs
 
-    def batch(self, split: str, epoch: int, indices: Sequence[int] | np.ndarray, n: int | None = None) -> dict:
-        """Pairs ``indices`` of ``split`` in ``epoch`` (``n``, the epoch's size, is not needed: a pair
-        depends on its index alone)."""
+    def draws(self, split: str, epoch: int, indices: Sequence[int] | np.ndarray) -> dict:
+        """What pairs ``indices`` of ``split`` in ``epoch`` are made of, before posing: ``identities``
+        ``(B, 2, 6)`` (driver, target), ``motion (B, T, bones, 3)`` and ``translation (B, T, 3)`` of
+        the driving window, ``target_pose (B, bones, 3)``."""
         spec = self.split(split)
         idx = np.asarray(indices, np.int64)
-        T, body = self.window, self.body
         keys = [(self.seed, "stream", spec.stream, split, int(epoch), int(i)) for i in idx]
         pair_rngs = [_generator(*k, "pair") for k in keys]
         drive_rngs = [_generator(*k, "driving") for k in keys]
         pose_rngs = [_generator(*k, "target pose") for k in keys]
-        bodies = sample_body_pairs(pair_rngs, spec.bodies)  # (B, 2, 6)
-        rest = np.array([rng.random() < REST_TARGET_FRACTION for rng in pair_rngs])
+        bodies = sample_body_pairs(pair_rngs, spec.bodies)
+        rest = np.array([rng.random() < spec.rest_targets for rng in pair_rngs])
         choices = [(_choose(r, spec.families), _choose(r, spec.orientations)) for r in pair_rngs]
         pose_choices = [(_choose(r, spec.families), _choose(r, spec.orientations)) for r in pair_rngs]
+        labels = self.body.bone_labels
+        rotvecs, translation = sample_windows(*zip(*choices), drive_rngs, self.window, labels, spec.actions)
+        pose, _ = sample_windows(*zip(*pose_choices), pose_rngs, 1, labels, spec.actions)
+        pose[rest] = 0.0
+        return {"identities": bodies, "motion": rotvecs, "translation": translation, "target_pose": pose[:, 0]}
+
+    def batch(self, split: str, epoch: int, indices: Sequence[int] | np.ndarray, n: int | None = None) -> dict:
+        """Pairs ``indices`` of ``split`` in ``epoch`` (``n``, the epoch's size, is not needed: a pair
+        depends on its index alone)."""
+        idx = np.asarray(indices, np.int64)
+        body = self.body
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # Ray Data runs several of these tasks on a few cores
         try:
-            rotvecs, translation = sample_windows(*zip(*choices), drive_rngs, T, body.bone_labels, spec.actions)
-            pose, _ = sample_windows(*zip(*pose_choices), pose_rngs, 1, body.bone_labels, spec.actions)
-            pose[rest] = 0.0
-            B, bones = len(idx), len(body.bone_labels)
-            identities = np.concatenate([np.repeat(bodies[:, 0], T, 0), np.repeat(bodies[:, 1], T, 0), bodies[:, 1]])
-            motion = rotvecs.reshape(B * T, bones, 3)
-            offsets = translation.reshape(B * T, 3)
-            meshes = body.pose(identities, np.concatenate([motion, motion, pose[:, 0]]),
-                               np.concatenate([offsets, offsets, np.zeros((B, 3), np.float32)]))
+            draws = self.draws(split, epoch, idx)
+            meshes = pose_pairs(body, draws)
         finally:
             torch.set_num_threads(threads)
-        V = meshes.shape[1]
-        driving = centre(meshes[: B * T].reshape(B, T, V, 3), self.center)
-        ground_truth = centre(meshes[B * T : 2 * B * T].reshape(B, T, V, 3), self.center)
-        target = centre(meshes[2 * B * T :].reshape(B, 1, V, 3), self.center)[:, 0]
+        driving, ground_truth, target = (centre(m, self.center) for m in meshes)
+        B = len(idx)
         return {
             "driving": np.ascontiguousarray(driving, np.float32),
-            "target": np.ascontiguousarray(target, np.float32),
+            "target": np.ascontiguousarray(target[:, 0], np.float32),
             "ground_truth": np.ascontiguousarray(ground_truth, np.float32),
             "target_faces": np.ascontiguousarray(np.broadcast_to(body.faces, (B, *body.faces.shape)), np.int64),
             "index": idx,
             "epoch": np.full(B, epoch, np.int64),
         }
+
+
+def pose_pairs(body, draws: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The meshes of ``StreamPairs.draws`` on ``body``'s topology, uncentred: driving and ground
+    truth ``(B, T, V, 3)``, target ``(B, 1, V, 3)`` (one Anny call for all)."""
+    bodies, rotvecs, translation = draws["identities"], draws["motion"], draws["translation"]
+    B, T, bones = rotvecs.shape[:3]
+    identities = np.concatenate([np.repeat(bodies[:, 0], T, 0), np.repeat(bodies[:, 1], T, 0), bodies[:, 1]])
+    motion = rotvecs.reshape(B * T, bones, 3)
+    offsets = translation.reshape(B * T, 3)
+    meshes = body.pose(identities, np.concatenate([motion, motion, draws["target_pose"]]),
+                       np.concatenate([offsets, offsets, np.zeros((B, 3), np.float32)]))
+    V = meshes.shape[1]
+    return (meshes[: B * T].reshape(B, T, V, 3), meshes[B * T : 2 * B * T].reshape(B, T, V, 3),
+            meshes[2 * B * T :].reshape(B, 1, V, 3))
