@@ -369,6 +369,51 @@ def test_mlflow_parent_and_child_runs_are_comparable(sweep_run):
         assert "predicted_memory_gb" in child.data.tags and "loss.rec" in child.data.params
         if row["status"] != "skipped_memory":
             assert [m.step for m in client.get_metric_history(child.info.run_id, "pmd_unseen")], row
+            # one value per run for the compare view: the trial's best epoch, its predicted memory
+            assert child.data.metrics["best_pmd_unseen"] == pytest.approx(float(row["best_pmd_unseen"]), abs=1e-3)
+            assert child.data.metrics["predicted_memory_gb"] == pytest.approx(float(row["predicted_memory_gb"]), abs=1e-3)
     best = [c for c in children if c.data.tags.get("best") == "true"]
     assert len(best) == 1 and parent.data.tags["best_run_id"] == best[0].info.run_id
     assert [a.path for a in client.list_artifacts(parent.info.run_id)] == ["summary.csv"]
+
+
+def _tables(output: str) -> list[tuple[str, dict]]:
+    """The trial tables a sweep printed: (heading, {trial id: {column: cell}})."""
+    tables, lines = [], output.splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith("== sweep "):
+            rows, header = {}, None
+            for row in lines[i + 1:]:
+                if row.startswith("| trial "):
+                    header = [c.strip() for c in row.strip("|").split("|")]
+                elif header and row.startswith("| "):
+                    cells = [c.strip() for c in row.strip("|").split("|")]
+                    rows[cells[0]] = dict(zip(header, cells))
+                elif header and row.startswith("+-") and rows:
+                    break
+            tables.append((line, rows))
+    return tables
+
+
+@pytest.mark.slow
+@pytest.mark.ray
+def test_sweep_console_shows_a_live_trial_table_then_the_summary_table(sweep_run):
+    code, first = sweep_run["first"]
+    live = _tables(first)
+    assert live, first[-3000:]
+    assert any(row["status"] == "running" and row["pred GB"] for _, rows in live for row in rows.values()), live
+    assert "Trial status:" not in first and "Result for " not in first  # Tune's own console is not printed
+    heading, final = _tables(sweep_run["second"])[-1]
+    summary = {r["trial_id"]: r for r in _summary(sweep_run["out"])}
+    assert heading.startswith("== sweep tiny_sweep: 3 trials ("), heading
+    assert set(final) == set(summary)
+    for trial_id, row in summary.items():
+        shown = final[trial_id]
+        assert shown["status"] == row["status"] and shown["T"] == row["window"]
+        assert float(shown["rec"]) == pytest.approx(float(row["rec"]), rel=5e-3)
+        if row["best_pmd_unseen"]:
+            assert float(shown["best PMD"]) == pytest.approx(float(row["best_pmd_unseen"]), rel=1e-3)
+        else:
+            assert shown["best PMD"] == "" and shown["batch"] == f"{row['batch_size']} (skip)"
+    # printed when something changed, not every few seconds: a log stays readable
+    assert len(live) <= 4 * len(summary) + 4, [h for h, _ in live]
