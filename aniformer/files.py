@@ -6,7 +6,8 @@ and staging directories that a crash does not leave behind. No Ray, no MLflow.
   one line naming the holder (pid, host, command, start time). The lock file is removed on release.
 - ``protect_inputs(out, inputs)``: `UserError` when ``--out`` is, contains or lies inside an input
   (``--overwrite`` replaces ``--out`` as a whole: it must never delete what the job reads).
-- ``claim_output(out, overwrite, inputs)``: both, plus ``check_output_dir``: what a job calls once.
+- ``claim_output(out, overwrite, inputs)``: both, plus ``check_output_dir``: what a job calls once;
+  ``@releases_locks`` on the job's ``main`` releases the lock when ``main`` ends however it is called.
 - ``staging_dir``/``clean_stale_staging``/``swap_dirs``: the pieces of ``cli.staged_output_dir``.
 - ``exclusive(path)``: a short critical section between processes (the first creation of a store).
 """
@@ -18,6 +19,7 @@ import contextlib
 import ctypes
 import errno
 import fcntl
+import functools
 import glob
 import json
 import os
@@ -28,7 +30,7 @@ import socket
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 LOCK_NAME = ".lock"
@@ -168,6 +170,23 @@ def release_locks() -> None:
     """Release every lock this process holds (the end of a job)."""
     for lock in list(_HELD.values()):
         lock.release()
+
+
+def releases_locks(main: Callable) -> Callable:
+    """Decorate a job's `main`: the output locks it takes are released when it returns or raises, also
+    when it is called directly rather than through `cli.run` (tests do), and an `--out` it created
+    only to hold its lock is removed again."""
+
+    @functools.wraps(main)
+    def job(*args, **kwargs):
+        before = set(_HELD)
+        try:
+            return main(*args, **kwargs)
+        finally:
+            for directory in [d for d in _HELD if d not in before]:
+                _HELD[directory].release()
+
+    return job
 
 
 def protect_inputs(out: str | os.PathLike, inputs: Mapping[str, str | os.PathLike | None | list]) -> None:

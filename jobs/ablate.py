@@ -22,6 +22,7 @@ if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from aniformer.cli import RunJobParser, UserError, exit_on_sigterm, run  # noqa: E402
+from aniformer.files import releases_locks  # noqa: E402
 
 
 def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: str, parent_run_id: str,
@@ -107,6 +108,7 @@ def _pair_samplers(data, bank_dir: Path, seed: int, pairs: int):
                                              eval_pairs=pairs)), available
 
 
+@releases_locks  # the --out lock ends with main, however main is called
 def main(argv: list[str]) -> None:
     args = RunJobParser("ablate.py", __doc__, out_help="output directory (runs/, ablation.md/.csv/.json)",
                         name_help="ablation name: MLflow parent run and job prefix").parse_args(argv)

@@ -28,7 +28,7 @@ if __package__ in (None, ""):  # run as a script from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from aniformer.cli import ArgumentParser, UserError, run, staged_output_dir  # noqa: E402
-from aniformer.files import claim_output  # noqa: E402
+from aniformer.files import claim_output, releases_locks  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -56,6 +56,7 @@ def _pick(name: str, value: int | None, allowed: list[int], split: str) -> int:
     return value
 
 
+@releases_locks  # the --out lock ends with main, however main is called
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
     out = Path(args.out).expanduser().resolve()

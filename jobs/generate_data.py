@@ -25,7 +25,7 @@ if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from aniformer.cli import ArgumentParser, UserError, exit_on_sigterm, load_config, run, staged_output_dir  # noqa: E402
-from aniformer.files import claim_output  # noqa: E402
+from aniformer.files import claim_output, releases_locks  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -52,6 +52,7 @@ def _normalise_overrides(overrides: list[str]) -> list[str]:
     return [f"data.{o}" if o.partition("=")[0] in fields else o for o in overrides]
 
 
+@releases_locks  # the --out lock ends with main, however main is called
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
     from pipeline import data

@@ -21,8 +21,10 @@ if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from aniformer.cli import RunJobParser, exit_on_sigterm, load_config, run  # noqa: E402
+from aniformer.files import releases_locks  # noqa: E402
 
 
+@releases_locks  # the --out lock ends with main, however main is called
 def main(argv: list[str]) -> None:
     args = RunJobParser("train.py", __doc__, out_help="output directory (checkpoints, bank)",
                         name_help="job name: MLflow run and Ray run").parse_args(argv)

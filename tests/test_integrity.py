@@ -275,6 +275,17 @@ def test_the_lock_is_released_when_the_holder_dies_and_its_file_removed_after_a_
     assert not (out / LOCK_NAME).exists() and out.is_dir()
 
 
+def test_a_job_main_called_directly_releases_its_lock_and_leaves_no_directory(tmp_path, job_main):
+    """Not through `cli.run` (tests call the mains directly): a UserError after the lock was taken still
+    releases it, and removes the `--out` it created to hold it."""
+    from aniformer.files import _HELD
+
+    out = tmp_path / "x"
+    with pytest.raises(UserError, match="not a split of the stream"):
+        job_main("export_meshes")(["--stream", "notoes_collapse3pc", "--split", "nope", "--out", str(out)])
+    assert not out.exists() and not _HELD
+
+
 def test_a_staged_output_stays_locked_while_it_replaces_the_old_one(tmp_path, holder):
     """The staging directory is locked before it is swapped in, so no other job gets in between."""
     from aniformer.cli import staged_output_dir
