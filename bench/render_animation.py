@@ -7,7 +7,8 @@
 
 Rows: driver, target, result, ground truth at 8 evenly spaced frames, each mesh bounding-box
 centred; prints the sequence's PMD (x1e-4) of result vs ground truth, against copying the driver
-(driver vs ground truth), and the heights (z extent, first frame) of target, driver and result.
+(driver vs ground truth, when they share a topology) and the static target, and the heights (z
+extent, first frame) of target, driver and result.
 """
 
 import json
@@ -26,12 +27,12 @@ from aniformer.render import render_filmstrip  # noqa: E402
 
 def main(samples: str, animation: str, png: str) -> None:
     samples, animation = Path(samples), Path(animation)
-    (driving, faces), (result, _), (truth, _) = (
+    (driving, faces), (result, result_faces), (truth, truth_faces) = (
         load_driving(driving_files(str(d))) for d in (samples / "driving", animation / "frames", samples / "ground_truth"))
-    target, _ = load_mesh(samples / "target.obj")
+    target, target_faces = load_mesh(samples / "target.obj")
     shown = np.linspace(0, len(driving) - 1, 8).round().astype(int)
-    rows = [("driver", driving[shown], faces), ("target", np.repeat(target[None], len(shown), 0), faces),
-            ("result", result[shown], faces), ("ground truth", truth[shown], faces)]
+    rows = [("driver", driving[shown], faces), ("target", np.repeat(target[None], len(shown), 0), target_faces),
+            ("result", result[shown], result_faces), ("ground truth", truth[shown], truth_faces)]
     info = json.loads((samples / "export.json").read_text())
     motion = info["motion"]["name"] if "motion" in info else f"{info['split']} pair {info['pair']} (stream)"
     render_filmstrip([(label, center_bbox(v), f) for label, v, f in rows], png, frames=len(shown),
@@ -42,7 +43,10 @@ def main(samples: str, animation: str, png: str) -> None:
     def height(vertices: np.ndarray) -> float:
         return float(np.ptp(vertices[..., 2]))
 
-    print(f"{png}: PMD {error(result):.2f} x1e-4 over {len(driving)} frames (copy-driver {error(driving):.2f}); "
+    copy = f"copy-driver {error(driving):.2f}" if driving.shape == truth.shape else "another topology than the driver's"
+    print(f"{png}: PMD {error(result):.2f} x1e-4 over {len(driving)} frames ({copy}; static target "
+          f"{error(np.broadcast_to(target, truth.shape)):.2f}); {len(target):,}-vertex target, "
+          f"{driving.shape[1]:,}-vertex driver; "
           f"height target {height(target):.2f} m, driver {height(driving[0]):.2f} m, result {height(result[0]):.2f} m")
 
 

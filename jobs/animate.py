@@ -8,7 +8,9 @@
 frame_10); every frame must have the first frame's vertices and faces. Target and driver may have
 any vertex count, order and connectivity: a mesh that is not the model's Anny topology is first
 registered onto it (aniformer/registration.py: Anny's body fitted to the mesh, a few seconds; the
-result is carried back to the mesh's own vertices). Inputs are human bodies standing z up, in
+result is carried back to the mesh's own vertices). The model runs on the driver's topology when
+that is one of Anny's, else on the checkpoint's (``--template``); a driver that is not an Anny mesh
+is registered on its first frame, which should be close to a standing rest pose. Inputs are human bodies standing z up, in
 ``--unit`` (default m). A T-frame window slides over the sequence one frame at a time; overlapping
 predictions of a frame are averaged (``--combine mean``) or the window centred on it is used
 (``--combine center``, always for a regression-head model); see docs/animate.md. The result is placed in world space where the
@@ -38,8 +40,8 @@ if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from aniformer.animate import FPS_SIDECARS, FRAMES_PER_MESH, MAX_GLB_BYTES, MAX_MORPH_TARGETS  # noqa: E402
-from aniformer.checkpoint import checkpoint_spec  # noqa: E402
-from aniformer.cli import ArgumentParser, UserError, check_output_dir, run, staged_output_dir  # noqa: E402
+from aniformer.cli import ArgumentParser, UserError, run, staged_output_dir  # noqa: E402
+from aniformer.files import claim_output, releases_locks  # noqa: E402
 from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS  # noqa: E402
 from jobs.evaluate import resolve_device  # noqa: E402
 from pipeline.tracking import resolve_checkpoint  # noqa: E402
@@ -61,8 +63,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--name", default=None,
                    help="name of the glTF node, mesh and animation (default: TARGET_DRIVING from the file names)")
     p.add_argument("--template", metavar="TOPOLOGY",
-                   help="Anny topology that meshes of other topologies are registered onto (default: the "
-                        "checkpoint's training topology)")
+                   help="Anny topology the model runs on, meshes of other topologies registered onto it "
+                        "(default: the driver's when it is an Anny mesh, else the checkpoint's)")
     p.add_argument("--combine", choices=("mean", "center"), default="mean",
                    help="how overlapping windows combine (default: mean)")
     p.add_argument("--input-center", choices=("mesh", "window", "none"), default=None,
@@ -85,6 +87,19 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def _anny_topology(vertices, faces) -> str | None:
+    """The Anny topology a mesh has (vertex count and faces), if any: the model runs there as it is."""
+    import numpy as np
+
+    from aniformer.synth.bodies import TOPOLOGIES, BodyModel
+
+    for topology, count in TOPOLOGIES.items():
+        if count == len(vertices) and np.array_equal(BodyModel(topology).faces, faces):
+            return topology
+    return None
+
+
+@releases_locks
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
     for flag, value, low in (("--batch-size", args.batch_size, 1), ("--max-vertices", args.max_vertices, 3),
@@ -98,7 +113,10 @@ def main(argv: list[str]) -> None:
     if args.fps is not None and not 0 < args.fps < float("inf"):
         raise UserError(f"--fps must be a positive number, got {args.fps}")
     out = Path(args.out).expanduser().resolve()
-    check_output_dir(out, args.overwrite)
+    from aniformer.checkpoint import checkpoint_spec  # torch: after the arguments are checked
+
+    checkpoint = checkpoint_spec(args.checkpoint)
+    claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--target": args.target, "--driving": args.driving})
     device = resolve_device(args.device)
 
     import numpy as np
@@ -132,7 +150,7 @@ def main(argv: list[str]) -> None:
         raise UserError(f"animation.glb would be {size / 2**30:.1f} GiB ({len(files):,} frames x {len(target):,} "
                         "vertices); glTF clients load at most 2 GiB: cut the clip, or --no-glb for the OBJs only")
     with tempfile.TemporaryDirectory(prefix="aniformer-animate-") as scratch:
-        model, state = model_from_checkpoint(resolve_checkpoint(checkpoint_spec(args.checkpoint), Path(scratch)))
+        model, state = model_from_checkpoint(resolve_checkpoint(checkpoint, Path(scratch)))
     config = model.config
     input_center = args.input_center or (state["config"].get("data") or {}).get("center", "mesh")
     with tqdm(total=len(files), unit="frame", desc="load driving", disable=args.no_progress, file=sys.stderr) as bar:
@@ -144,19 +162,21 @@ def main(argv: list[str]) -> None:
         from aniformer.registration import Correspondence
         from aniformer.synth.bodies import TOPOLOGIES, BodyModel
 
-        topology = args.template or (state["config"].get("data") or {}).get("topology")
+        trained = (state["config"].get("data") or {}).get("topology")
+        topology = args.template or _anny_topology(driving[0], driving_faces) or trained
         if topology not in TOPOLOGIES:
             raise UserError(f"--template must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
-        faces = BodyModel(topology).faces
+        template = BodyModel(topology)
+        faces = template.faces
         for role, vertices, mesh_faces in (("driver", driving[0], driving_faces), ("target", target, target_faces)):
             if not np.array_equal(mesh_faces, faces):  # another vertex count, order or connectivity
                 began = time.perf_counter()
                 registrations[role] = Correspondence(vertices, mesh_faces, topology)
                 fit = registrations[role]
-                print(f"registered the {role} ({len(vertices):,} vertices) onto Anny {topology} ({len(faces):,} "
+                print(f"registered the {role} ({len(vertices):,} vertices) onto Anny {topology} ({template.num_vertices:,} "
                       f"vertices): {fit.rms * 1000:.1f} mm RMS surface distance, {time.perf_counter() - began:.1f} s",
                       file=sys.stderr)
-                if fit.rms > 0.03:
+                if fit.rms > 0.05:
                     print(f"warning: the {role} fits Anny's body poorly ({fit.rms * 1000:.0f} mm RMS): is it a "
                           "human, upright and z up in --unit?", file=sys.stderr)
         model_driving = registrations["driver"].to_template(driving) if "driver" in registrations else driving

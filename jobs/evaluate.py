@@ -31,7 +31,8 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from aniformer.cli import ArgumentParser, UserError, check_output_dir, run, staged_output_dir  # noqa: E402
+from aniformer.cli import ArgumentParser, UserError, run, staged_output_dir  # noqa: E402
+from aniformer.files import claim_output, releases_locks  # noqa: E402
 from pipeline.tracking import RUN_ID, quiet_mlflow, resolve_checkpoint  # noqa: E402
 
 
@@ -100,6 +101,7 @@ def _default_name(spec: str) -> str:
     return (path.parent.name if path.is_file() else path.name) or "checkpoint"
 
 
+@releases_locks
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
     if args.pairs is not None and args.pairs < 1:
@@ -119,10 +121,14 @@ def main(argv: list[str]) -> None:
             raise UserError(f"--compare {item!r} is not of the form NAME=CKPT")
         compare.append((label.strip(), spec))
     out = Path(args.out).expanduser().resolve()
-    check_output_dir(out, args.overwrite)
+    from aniformer.checkpoint import checkpoint_spec  # torch: after the arguments are checked
+
+    checkpoint = checkpoint_spec(args.checkpoint)
+    claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--compare": [checkpoint_spec(spec) for _, spec in compare],
+                                       "--bank": args.bank or Path(checkpoint).expanduser().parent / "bank"})
     device = resolve_device(args.device)
 
-    from aniformer.checkpoint import checkpoint_spec, model_from_checkpoint
+    from aniformer.checkpoint import model_from_checkpoint
     from aniformer.evaluate import (
         Samplers,
         copy_driver_contender,
@@ -138,7 +144,7 @@ def main(argv: list[str]) -> None:
     )
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="aniformer-eval-") as scratch:
-        ckpt_path = resolve_checkpoint(checkpoint_spec(args.checkpoint), Path(scratch))
+        ckpt_path = resolve_checkpoint(checkpoint, Path(scratch))
         model, state = model_from_checkpoint(ckpt_path)
         others = []
         for label, spec in compare:
@@ -319,7 +325,7 @@ def _log_to_mlflow(job: str, args, files: Path, table, sweep, pairs, seed, split
                            "pairs": pairs, "seed": seed,
                            "splits": splits, "compare": args.compare, "noise": args.noise or ""}, **config}
     try:
-        tracker = start_job_run(job, params, experiment=args.experiment)
+        tracker = start_job_run(job, params, experiment=args.experiment, out=Path(args.out).expanduser().resolve())
         with tracker.ended():
             metrics = {f"pmd_{split}.{_metric_name(row)}": value
                        for row, values in table.items() for split, value in values.items()}

@@ -82,7 +82,7 @@ def test_animate_a_foreign_target_with_the_shipped_model(tmp_path, job_main, cap
     stream clip; the output keeps the target's vertices and faces, and says it was registered."""
     from aniformer.cli import run
     from aniformer.mesh import load_mesh, save_mesh
-    from aniformer.synth.variants import _remesh
+    from aniformer.synth.variants import remesh
 
     samples, anim = tmp_path / "clip", tmp_path / "anim"
     run(job_main("export_meshes"), ["--stream", MODEL_TOPOLOGY, "--split", "crouch", "--frames", "6",
@@ -91,7 +91,7 @@ def test_animate_a_foreign_target_with_the_shipped_model(tmp_path, job_main, cap
 
     full = _body_model("notoes")
     target = pose_pairs(full, _stream_draws())[2][0, 0]
-    vertices, faces = _remesh(target, full.faces)
+    vertices, faces = remesh(target, full.faces)
     save_mesh(tmp_path / "character.obj", vertices, faces)
     run(job_main("animate"), ["--target", str(tmp_path / "character.obj"), "--driving", str(samples / "driving"),
                               "--out", str(anim), "--no-progress", "--preview-frames", "0"])
@@ -99,7 +99,7 @@ def test_animate_a_foreign_target_with_the_shipped_model(tmp_path, job_main, cap
     frame, frame_faces = load_mesh(anim / "frames" / "frame_0003.obj")
     assert frame.shape == vertices.shape and np.array_equal(frame_faces, faces)
     summary = json.loads((anim / "animation.json").read_text())
-    assert set(summary["registered"]) == {"target"} and summary["registered"]["target"]["rms_m"] < 0.03
+    assert set(summary["registered"]) == {"target"} and summary["registered"]["target"]["rms_m"] < 0.05
     # the pose came from the driver: the result is far from the unmoved character in a squat
     assert np.abs(center_bbox(frame) - center_bbox(vertices)).max() > 0.05
 
