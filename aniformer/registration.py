@@ -2,7 +2,7 @@
 
 The model works on one topology with vertex correspondence between driver and target (vertex
 ``i`` is the same body point in both; ``aniformer/transfer.py``). A user's character has its own
-vertex count, order and connectivity. ``register`` fits Anny's body at the model's topology onto
+vertex count, order and connectivity. ``Correspondence`` fits Anny's body at the model's topology onto
 the mesh and keeps the two embeddings that carry motion across:
 
 1. *fit*: Anny's phenotype (build), its 104 bone rotations and a global heading, then small
@@ -15,7 +15,7 @@ the mesh and keeps the two embeddings that carry motion across:
    so ``from_template`` carries a posed template back: the vertex rides its point, and its offset
    turns with the template's rotation there (the one-ring rotations of the face's corners,
    blended). Solving for the mesh's own edges turned by those rotations (as-rigid-as-possible)
-   was measured worse: 1.3-2.1 against 1.0-1.2 PMD of carry-back error (docs/results.md).
+   was measured worse: 1.3-7.1 against 1.0-1.2 PMD of carry-back error (docs/results.md).
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ def _fit_body(template: _Template, points: torch.Tensor, tree, start: list[torch
     """Adam on (phenotype logits, bone rotations, shift) of each batch row from ``start``: (the
     parameters, the posed vertices, the loss per row)."""
     phenotype, rotvecs, shift = params = [p.detach().clone().requires_grad_(True) for p in start]
-    optimiser = torch.optim.Adam([{"params": [phenotype], "lr": 0.03}, {"params": [rotvecs, shift]}], lr=0.03)
+    optimiser = torch.optim.Adam(params, lr=0.03)
     for _ in range(steps):
         posed = template.vertices(torch.sigmoid(phenotype), rotvecs)
         posed = posed - (posed.amin(1, keepdim=True) + posed.amax(1, keepdim=True)) / 2 + shift
