@@ -14,7 +14,9 @@ One module-scoped cluster (the CI machine has 2 cores, so it is started once):
 
 Then, in order: what listens where, the token check, the tiny training job through `ray job submit`
 and a tiny sweep submitted as soon as the training job's mesh bank exists (both run at once), the
-MLflow UI in headless Chromium (DOM text + screenshot), the server's backup on stop, and the local
+MLflow UI in headless Chromium (the runs list; then the compare view of the sweep's trials, driven
+over the DevTools protocol as a user clicks through it, with the screenshot kept as docs/mlflow_ui.png
+when ANIFORMER_KEEP_SCREENSHOT names it), the server's backup on stop, and the local
 Ray instance a job starts without a cluster. Everything is stopped through its own process group, never with `ray stop` (which
 would kill every Ray on the machine).
 """
@@ -49,8 +51,13 @@ TRAIN = ["train.epochs=1", "data.workers=2"]  # 2 generation tasks: the machine 
 # Up to two trials at once, spread over the nodes: a trial holds 0.05 + 0.5 CPU and its Ray Data reads
 # 1 more (docs/sweeps.md); the cluster has 4 logical CPUs (head 2, workers 1 each; 2 physical cores),
 # and the training job holds 1.5 of them while it runs beside the sweep.
-SWEEP = ["sweep.num_samples=2", "sweep.search=random", "sweep.max_concurrent=2", "sweep.memory_limit_gb=16",
+# Three trials, two of them given far apart (and a third drawn), so that the compare view's plots
+# (test_mlflow_compare_view_...) have lambdas and windows that differ.
+SWEEP = ["sweep.num_samples=3", "sweep.search=random", "sweep.max_concurrent=2", "sweep.memory_limit_gb=16",
+         "sweep.points=[{rec: 0.3, motion: 1.0e-4, appearance: 3.0e-3, window: 2}, "
+         "{rec: 3.0, motion: 3.0e-3, appearance: 1.0e-4, window: 6}]",
          "train.epochs=1", "train.render_every=1"]
+TRIALS = 3
 
 
 # ------------------------------------------------------------------ who listens where (/proc)
@@ -442,11 +449,11 @@ def test_sweep_job_submitted_to_the_cluster(cluster):
     status, logs = wait_for_job(cluster, "sweep_job")
     assert status == "SUCCEEDED", logs[-5000:]
     rows = list(csv.DictReader((cluster.root / "runs" / "sweep" / "summary.csv").open()))
-    assert len(rows) == 2 and all(r["status"] in ("ok", "early_stopped", "adjusted_memory") for r in rows), rows
+    assert len(rows) == TRIALS and all(r["status"] in ("ok", "early_stopped", "adjusted_memory") for r in rows), rows
     _, runs = mlflow_runs(cluster)
     (parent,) = [r for r in runs if r["info"]["run_name"] == "sweep"]
     children = [r for r in runs if tags(r).get("mlflow.parentRunId") == parent["info"]["run_id"]]
-    assert parent["info"]["status"] == "FINISHED" and len(children) == 2
+    assert parent["info"]["status"] == "FINISHED" and len(children) == TRIALS
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (.ci/run installs Debian's chromium)")
@@ -475,6 +482,249 @@ def test_mlflow_ui_in_a_real_browser_shows_the_runs(cluster, tmp_path):
     image = _png_stats(shot)
     assert image["width"] >= 1200 and image["height"] >= 800
     assert image["colours"] > 200 and 0.05 < image["ink"] < 0.95, image  # a rendered page, not a blank one
+
+
+# ------------------------------------------------------------------ a browser driven over the DevTools protocol
+
+
+class Tab:
+    """One headless Chromium tab driven over the DevTools protocol (CDP, a websocket; aiohttp comes
+    with ray[default]), as a user would: mouse clicks at elements' positions and typed text."""
+
+    def __init__(self, ws):
+        self.ws, self.ids = ws, iter(range(1, 10**9))
+
+    async def call(self, method: str, **params):
+        i = next(self.ids)
+        await self.ws.send_json({"id": i, "method": method, "params": params})
+        while True:  # events (no subscriptions, but some come anyway) are skipped
+            message = json.loads((await self.ws.receive()).data)
+            if message.get("id") == i:
+                assert "error" not in message, f"{method}: {message['error']}"
+                return message["result"]
+
+    async def js(self, expression: str):
+        result = await self.call("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True)
+        assert "exceptionDetails" not in result, f"{expression}: {result['exceptionDetails']}"
+        return result["result"].get("value")
+
+    async def wait(self, expression: str, what: str, timeout: float = 60):
+        import asyncio
+
+        deadline = time.time() + timeout
+        while not (value := await self.js(expression)):
+            assert time.time() < deadline, f"timed out waiting for {what}"
+            await asyncio.sleep(0.25)
+        return value
+
+    async def click(self, element: str, what: str, timeout: float = 60) -> None:
+        """Click the middle of `element` (a JS expression; null until it exists)."""
+        x, y = await self.wait(f"(() => {{ const e = {element}; if (!e || !e.getClientRects().length) return null; "
+                               "e.scrollIntoView({block: 'center'}); const r = e.getBoundingClientRect(); "
+                               "return [r.x + r.width / 2, r.y + r.height / 2]; })()", what, timeout)
+        for kind in ("mousePressed", "mouseReleased"):
+            await self.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+
+    async def key(self, name: str, code: int, modifiers: int = 0, physical: str | None = None) -> None:
+        for kind in ("keyDown", "keyUp"):
+            await self.call("Input.dispatchKeyEvent", type=kind, key=name, code=physical or name,
+                            windowsVirtualKeyCode=code, modifiers=modifiers)
+
+    async def viewport(self, width: int, height: int) -> None:
+        await self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1,
+                        mobile=False)
+
+    async def screenshot(self, path: Path, height: int | None = None) -> None:
+        """The viewport as a PNG, or its top `height` pixels."""
+        import base64
+
+        clip = {}
+        if height is not None:
+            width = await self.js("window.innerWidth")
+            clip = {"clip": {"x": 0, "y": 0, "width": width, "height": height, "scale": 1}}
+        path.write_bytes(base64.b64decode((await self.call("Page.captureScreenshot", format="png", **clip))["data"]))
+
+
+def in_chromium(profile: Path, script, timeout: float = 240):
+    """Run `script(tab)` (a coroutine function) in a fresh headless Chromium; its result."""
+    import asyncio
+    import re
+    import urllib.request
+
+    import aiohttp
+
+    cmd = [CHROMIUM, "--headless", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
+           "--disable-component-update", "--disable-sync", "--disable-breakpad", f"--user-data-dir={profile}",
+           "--hide-scrollbars", "--remote-debugging-port=0", "about:blank"]
+    if os.geteuid() == 0:
+        cmd.insert(2, "--no-sandbox")  # Chromium's sandbox refuses to run as root
+    browser = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline, port = time.time() + 60, None
+        while port is None:  # "DevTools listening on ws://127.0.0.1:PORT/devtools/browser/..."
+            line = browser.stderr.readline()
+            assert line or browser.poll() is None, "chromium exited before it listened"
+            assert time.time() < deadline, "chromium did not start its DevTools server"
+            found = re.search(r"DevTools listening on ws://[^:]+:(\d+)/", line)
+            port = int(found.group(1)) if found else None
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=30) as r:
+            (page,) = [t for t in json.loads(r.read()) if t["type"] == "page"]
+
+        async def session():
+            async with aiohttp.ClientSession() as client, client.ws_connect(page["webSocketDebuggerUrl"],
+                                                                             max_msg_size=0) as ws:
+                return await script(Tab(ws))
+
+        return asyncio.run(asyncio.wait_for(session(), timeout))
+    finally:
+        kill_group(browser.pid)
+        browser.wait(timeout=30)
+
+
+SWEPT = ["loss.rec", "loss.motion", "loss.appearance", "data.window"]  # the sweep's searched params (tune.PARAMS)
+
+
+def _select(field: str) -> str:
+    """The multiple-choice select after the label `field` ("Parameters:", "Metrics:") of the
+    parallel-coordinates controls."""
+    return (f"[...document.querySelectorAll('div')].find(d => d.textContent === {json.dumps(field)})"
+            ".nextElementSibling")
+
+
+async def _choose(tab: Tab, field: str, keys: list[str]) -> list[str]:
+    """Pick `keys` in a multiple-choice select: open it (its arrow, away from the chosen tags and
+    their remove buttons), type the key, click the option that matches it exactly."""
+    select = _select(field)
+    box = f"{select}.querySelector('input')"
+    options = "[...document.querySelectorAll('.du-bois-light-select-item-option')].filter(o => o.offsetParent)"
+    chosen = f"[...{select}.querySelectorAll('.du-bois-light-select-selection-item-content')].map(e => e.textContent)"
+    for key in keys:
+        for attempt in range(3):  # a click or keys landing while the UI re-renders: try again
+            try:
+                await tab.wait(f"!{options}.length", "no dropdown open", timeout=10)
+                await tab.click(f"{select}.querySelector('.du-bois-light-select-arrow')", f"the {field} arrow")
+                await tab.wait(f"document.activeElement === {box}", f"focus on the {field} box", timeout=10)
+                if await tab.js(f"{box}.value"):  # what was typed for the last one may still be there
+                    await tab.key("a", 65, modifiers=2, physical="KeyA")  # ctrl+A
+                    await tab.key("Backspace", 8)
+                    await tab.wait(f"{box}.value === ''", f"an empty {field} box", timeout=10)
+                await tab.call("Input.insertText", text=key)
+                await tab.click(f"{options}.find(o => o.textContent === {json.dumps(key)})", f"option {key}", timeout=10)
+                await tab.wait(f"{chosen}.includes({json.dumps(key)})", f"{key} chosen", timeout=10)
+                break
+            except AssertionError as e:
+                state = await tab.js(f"[{box}.value, {chosen}, {options}.map(o => o.textContent).slice(0, 10)]")
+                if attempt == 2:
+                    raise AssertionError(f"{field} {key}: {e} (typed, chosen, options shown: {state})") from None
+            finally:
+                await tab.key("Escape", 27)
+    return await tab.js(chosen)
+
+
+async def _pick(tab: Tab, select_id: str, key: str) -> None:
+    """Choose `key` in the single-choice select (a button that opens a list of options) `select_id`."""
+    button = f"document.getElementById('{select_id}')"
+    listed = "[...document.querySelectorAll('[role=option]')].filter(o => o.offsetParent)"
+    for attempt in range(3):
+        try:
+            await tab.wait(f"!{listed}.length", "no list open", timeout=10)
+            await tab.click(button, select_id, timeout=10)
+            await tab.click(f"{listed}.find(o => o.textContent === {json.dumps(key)})", f"option {key}", timeout=10)
+            await tab.wait(f"{button}.textContent === {json.dumps(key)}", f"{key} in {select_id}", timeout=10)
+            return
+        except AssertionError as e:
+            if attempt == 2:
+                shown = await tab.js(f"[{button}.textContent, {listed}.map(o => o.textContent).slice(0, 10)]")
+                raise AssertionError(f"{select_id} {key}: {e} (shown, options: {shown})") from None
+            if await tab.js(f"{listed}.length"):
+                await tab.key("Escape", 27)
+
+
+async def _compare_view(tab: Tab, url: str, names: list[str], shot: Path) -> dict:
+    """Open the compare view of a sweep's trials; plot the swept params and pmd_unseen in parallel
+    coordinates (screenshot with the params that differ), then each swept param against pmd_unseen
+    in the scatter plot. What the page showed."""
+    seen = {}
+    # Tall enough that nothing scrolls (the page scrolls inside its own panel; resizing later can
+    # re-mount the plot's controls, losing what was chosen): the screenshot is the top of it.
+    await tab.viewport(1600, 3000)
+    await tab.call("Page.navigate", url=url)
+    await tab.wait("document.body && document.body.innerText.includes('Parallel Coordinates Plot') && "
+                   + " && ".join(f"document.body.innerText.includes({json.dumps(n)})" for n in names),
+                   "the compare view of the trials")
+    close = "document.querySelector('[data-component-id=\"mlflow.assistant.chat_panel.close\"]')"
+    if await tab.js(f"!!{close}"):  # MLflow 3's assistant panel takes a third of the width
+        await tab.click(close, "the assistant's close button")
+    await tab.click("[...document.querySelectorAll('button')].find(b => b.textContent === 'Clear All')", "Clear All")
+    seen["params"] = await _choose(tab, "Parameters:", SWEPT)
+    seen["metrics"] = await _choose(tab, "Metrics:", ["pmd_unseen"])
+    plot = "document.querySelector('[id$=content-parallel-coordinates-plot] .js-plotly-plot')"
+    await tab.wait(f"{plot} && {plot}.data && {plot}.data[0].dimensions.length === 5",
+                   f"the 5 axes (chosen: {seen['params']}, {seen['metrics']})")
+    seen["axes"] = await tab.js(f"{plot}.data[0].dimensions.map(d => [d.label, d.values])")
+    seen["axis_titles"] = await tab.js("[...document.querySelectorAll('.parcoords .axis-title')].map(e => e.textContent)")
+    diff = "document.querySelector('button[aria-label=\"Parameters - Show diff only\"]')"
+    await tab.click(diff, "Parameters: show diff only")
+    await tab.wait(f"{diff}.getAttribute('aria-checked') === 'true'", "only the params that differ")
+    await tab.js("[...document.querySelectorAll('*')].forEach(e => { if (e.scrollTop) e.scrollTop = 0; })")
+    bottom = await tab.js(f"{diff}.closest('.du-bois-light-collapse-content-box').querySelector('table')"
+                          ".getBoundingClientRect().bottom")
+    seen["text"] = await tab.js("document.body.innerText")
+    await tab.screenshot(shot, height=int(bottom) + 24)  # from the top to the end of those params
+    await tab.click("[...document.querySelectorAll('[role=tab]')].find(b => b.textContent === 'Scatter Plot')",
+                    "the Scatter Plot tab")
+    scatter = "document.querySelector('[id$=content-scatter-plot] .js-plotly-plot')"
+    seen["scatter"] = {}
+    for param in SWEPT:
+        for axis, key in (("x", param), ("y", "pmd_unseen")):
+            await _pick(tab, f"{axis}-axis-selector", key)
+        seen["scatter"][param] = await tab.js(f"(() => {{ const t = {scatter}.data[0]; return {{x: t.x, y: t.y, "
+                                              "names: t.text.map(s => s.split('</b>')[0].replace('<b>', ''))}; })()")
+    return seen
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (.ci/run installs Debian's chromium)")
+def test_mlflow_compare_view_shows_the_sweeps_trials_in_a_real_browser(cluster, tmp_path):
+    """The compare view of the sweep's children (the link `pipeline.tune.compare_link` prints), as a user
+    reaches it: parallel coordinates over lambda_rec, lambda_m, lambda_a, T and pmd_unseen, the scatter of
+    each against pmd_unseen; the values drawn are the runs' own. Screenshot: ANIFORMER_KEEP_SCREENSHOT
+    (docs/mlflow_ui.png)."""
+    from pipeline.tune import compare_url
+
+    experiment, runs = mlflow_runs(cluster)
+    (parent,) = [r for r in runs if r["info"]["run_name"] == "sweep"]
+    children = sorted((r for r in runs if tags(r).get("mlflow.parentRunId") == parent["info"]["run_id"]),
+                      key=lambda r: r["info"]["run_name"])
+    assert len(children) == TRIALS, "the sweep job did not run"
+    params = [{p["key"]: p["value"] for p in r["data"]["params"]} for r in children]
+    pmd = [{m["key"]: m["value"] for m in r["data"]["metrics"]}["pmd_unseen"] for r in children]
+    names = [r["info"]["run_name"] for r in children]
+    url = compare_url(cluster.mlflow, experiment, [r["info"]["run_id"] for r in children])
+    shot = tmp_path / "mlflow_compare.png"
+    profile = tmp_path / "profile"
+    profile.mkdir()
+    started = time.time()
+    seen = in_chromium(profile, lambda tab: _compare_view(tab, url, names, shot))
+    print(f"compare view driven in {time.time() - started:.1f} s")
+
+    assert seen["params"] == SWEPT and seen["metrics"] == ["pmd_unseen"], seen
+    assert seen["axis_titles"] == [*SWEPT, "pmd_unseen"], seen["axis_titles"]
+    # the lines are the trials: each axis holds the runs' values (the UI's run order is the URL's)
+    axes = dict((label, values) for label, values in seen["axes"])
+    for key in SWEPT:
+        assert sorted(axes[key]) == pytest.approx(sorted(float(p[key]) for p in params)), key
+    assert sorted(axes["pmd_unseen"]) == pytest.approx(sorted(pmd))
+    text = seen["text"]
+    assert all(name in text for name in names) and "Show diff only" in text
+    for p in params:  # the diff-only table: the swept values of every trial
+        assert p["loss.rec"] in text and p["loss.appearance"] in text, p
+    for key in SWEPT:  # each swept value against pmd_unseen, one point per trial, named
+        points = seen["scatter"][key]
+        by_name = {n: (float(x), y) for n, x, y in zip(points["names"], points["x"], points["y"])}
+        assert by_name == {n: (pytest.approx(float(p[key])), pytest.approx(v)) for n, p, v in zip(names, params, pmd)}
+    image = _png_stats(shot)
+    assert image["width"] == 1600 and image["height"] >= 900, image
+    assert image["colours"] > 200 and 0.05 < image["ink"] < 0.95, image
     keep = os.environ.get("ANIFORMER_KEEP_SCREENSHOT")
     if keep:
         shutil.copyfile(shot, keep)
