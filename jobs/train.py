@@ -26,8 +26,12 @@ from aniformer.files import releases_locks  # noqa: E402
 
 @releases_locks  # the --out lock ends with main, however main is called
 def main(argv: list[str]) -> None:
-    args = RunJobParser("train.py", __doc__, out_help="output directory (checkpoints, bank)",
-                        name_help="job name: MLflow run and Ray run").parse_args(argv)
+    parser = RunJobParser("train.py", __doc__, out_help="output directory (checkpoints, bank)",
+                          name_help="job name: MLflow run and Ray run")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bar (it is shown only when stderr is a terminal anyway)")
+    parser.add_argument("--verbose", action="store_true", help="Ray's own INFO logs (Ray Data, Ray Train)")
+    args = parser.parse_args(argv)
     config = load_config(args.config, args.overrides)
     from pipeline.train import RunSpec
 
@@ -35,18 +39,21 @@ def main(argv: list[str]) -> None:
     out, name, bank = RunJobParser.locations(args)
 
     from pipeline.cluster import connect
+    from pipeline.console import Console, quiet_ray
     from pipeline.data import prepare_bank
     from pipeline.tracking import quiet_mlflow, start_job_run, ui_hint
     from pipeline.train import train_job
 
     quiet_mlflow()
+    console = Console.for_job(no_progress=args.no_progress, verbose=args.verbose)
+    quiet_ray(console.verbose)
     connect()
     exit_on_sigterm()  # after ray.init, which installs its own handler
     _, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
     tracker = start_job_run(name, spec.to_dict(), experiment=args.experiment, out=out)
     # `ray job stop` and kill send SIGTERM: `run` makes it exit 143, the run ends KILLED (never RUNNING).
     with tracker.ended():
-        result = train_job(spec, bank, out, name, tracker, faces)
+        result = train_job(spec, bank, out, name, tracker, faces, console)
     metrics = result.metrics or {}
     print(f"trained {name}: epoch {metrics.get('epoch')}, PMD seen {metrics.get('pmd_seen', float('nan')):.3f}, "
           f"unseen {metrics.get('pmd_unseen', float('nan')):.3f} (x1e-4)")

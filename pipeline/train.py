@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 import ray.train
 import torch
-from ray.train import CheckpointConfig, DataConfig, FailureConfig, RunConfig, ScalingConfig
+from ray.data import DataContext, ExecutionOptions
+from ray.train import CheckpointConfig, DataConfig, FailureConfig, LoggingConfig, RunConfig, ScalingConfig
 from ray.train.torch import TorchTrainer
 
 from aniformer.baselines import MODELS, build_model
@@ -32,6 +33,7 @@ from aniformer.cli import UserError, atomic_path, from_dict
 from aniformer.losses import LossConfig, loss_terms
 from aniformer.metrics import PMD_SCALE, pmd
 from aniformer.model import ATTENTION_KERNELS, attention_kernels
+from pipeline.console import Console, EpochBar, epoch_line, quiet_ray, show
 from pipeline.data import DataConfig as PairDataConfig
 from pipeline.data import data_config, pair_dataset, pair_source, quiet_ray_data
 from pipeline.tracking import Tracker
@@ -166,6 +168,8 @@ def train_func(loop_config: dict) -> None:
     spec = RunSpec.from_config(loop_config["config"])
     cfg, loss_cfg = spec.train, spec.loss
     tracker: Tracker | None = loop_config.get("tracker")
+    console = Console(**loop_config["console"]) if loop_config.get("console") else None
+    quiet_ray(verbose=console is None or console.verbose)
     context = ray.train.get_context()
     rank, world = context.get_world_rank(), context.get_world_size()
     if not cfg.use_gpu:
@@ -207,6 +211,8 @@ def train_func(loop_config: dict) -> None:
 
     for epoch in range(start_epoch, cfg.epochs):
         sums, waited, started = defaultdict(float), 0.0, time.perf_counter()
+        bar = EpochBar(bool(console and console.progress and rank == 0), epoch + 1, cfg.epochs, steps_per_epoch,
+                       cfg.batch_size * world)
         for i in range(steps_per_epoch):
             tick = time.perf_counter()
             batch = next(batches)
@@ -227,6 +233,8 @@ def train_func(loop_config: dict) -> None:
                 step += 1
             for name, value in terms.items():
                 sums[name] += value.detach()
+            bar.step(lambda total=sums["total"], n=i + 1: total.item() / n)  # read only when the bar redraws
+        bar.close()
         scheduler.step()
         elapsed = time.perf_counter() - started
         losses = torch.stack([sums[k] for k in ("total", "rec", "motion", "appearance")]) / steps_per_epoch
@@ -258,6 +266,8 @@ def train_func(loop_config: dict) -> None:
                         png = render_example(example, frames, np.asarray(loop_config["faces"]),
                                              Path(directory) / f"epoch_{epoch + 1:04d}.png")
                         tracker.log_artifact(png, "filmstrips")
+                if console and console.epoch_lines:
+                    show(epoch_line(metrics, cfg.epochs, time.perf_counter() - started))
             ray.train.report(metrics, checkpoint=report_checkpoint)
 
 
@@ -290,11 +300,12 @@ def restore_state(checkpoint: ray.train.Checkpoint) -> dict | None:
 
 def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
                   faces: np.ndarray, *, loop=train_func, loop_config: dict | None = None,
-                  callbacks: list | None = None) -> TorchTrainer:
+                  callbacks: list | None = None, console: Console | None = None) -> TorchTrainer:
     """The TorchTrainer of a run: pair datasets from the bank, scaling, checkpoints (best by unseen
     PMD, plus the latest) and failure handling. Checkpoints live under `storage/name` and a trainer
     re-created with the same name resumes from them. `loop`, `loop_config` (merged into the loop's
-    config) and `callbacks` let a sweep trial add its own reporting to the same training."""
+    config) and `callbacks` let a sweep trial add its own reporting to the same training. `console`
+    (a training job's): rank 0's bar and epoch lines, Ray Train's log level; None leaves Ray's output as is."""
     cfg = spec.train
     quiet_ray_data()  # before the trainer: it captures the DataContext for its workers
     source = pair_source(spec.data, bank_dir)  # one bank load for every dataset
@@ -303,11 +314,15 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
         datasets[split] = pair_dataset(source, split)
     # Blocks in the order of their pair ids: the same config and seed give the same batches, so the
     # same model (Ray Data otherwise yields blocks as tasks finish, and runs diverged from epoch 1).
-    ingest = DataConfig.default_ingest_options()
-    ingest.preserve_order = True
+    # DataConfig.default_ingest_options() with preserve_order, less its deprecated exclude_resources
+    # (passing it, even as the default, warns RayDeprecationWarning).
+    current = DataContext.get_current().execution_options
+    ingest = ExecutionOptions(resource_limits=current.resource_limits, preserve_order=True,
+                              verbose_progress=current.verbose_progress)
     return TorchTrainer(
         loop,
-        train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": faces.tolist(), **(loop_config or {})},
+        train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": faces.tolist(),
+                           "console": console.to_dict() if console else None, **(loop_config or {})},
         scaling_config=ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
                                      resources_per_worker={"CPU": cfg.cpus_per_worker},
                                      placement_strategy=cfg.placement_strategy),
@@ -321,14 +336,15 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
             checkpoint_config=CheckpointConfig(num_to_keep=cfg.keep_checkpoints, checkpoint_score_attribute=SCORE,
                                                checkpoint_score_order="min"),
             failure_config=FailureConfig(max_failures=cfg.max_failures),
+            logging_config=LoggingConfig(log_level=console.train_log_level) if console else None,
         ),
     )
 
 
 def fit(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
-        faces: np.ndarray) -> ray.train.Result:
+        faces: np.ndarray, console: Console | None = None) -> ray.train.Result:
     """Train `spec` on the pairs of `bank_dir`; checkpoints under `storage/name` (resumed if present)."""
-    return build_trainer(spec, bank_dir, storage, name, tracker, faces).fit()
+    return build_trainer(spec, bank_dir, storage, name, tracker, faces, console=console).fit()
 
 
 def root_cause(error: BaseException) -> BaseException:
@@ -370,7 +386,7 @@ def best_checkpoint(result: ray.train.Result) -> ray.train.Checkpoint:
 
 
 def train_job(spec: RunSpec, bank_dir: Path, out: Path, name: str, tracker: Tracker,
-              faces: np.ndarray) -> ray.train.Result:
+              faces: np.ndarray, console: Console | None = None) -> ray.train.Result:
     """A training job's work (jobs/train.py, each ablation variant): `fit` with Ray's checkpoints under
     `out/ray`, then `out/best.pt` (best unseen PMD) and `out/last.pt`, the best logged to the run."""
     import shutil
@@ -378,7 +394,7 @@ def train_job(spec: RunSpec, bank_dir: Path, out: Path, name: str, tracker: Trac
     from pipeline.tracking import CHECKPOINT_ARTIFACT
 
     try:
-        result = fit(spec, bank_dir, out / "ray", name, tracker, faces)
+        result = fit(spec, bank_dir, out / "ray", name, tracker, faces, console)
     except ray.train.TrainingFailedError as e:  # Ray Train v2's fit() raises what a worker or the controller did
         raise UserError(training_failure(e)) from None
     if result.error:
