@@ -560,8 +560,8 @@ class SweepReporter(CLIReporter):
         return self._planned[trial.trial_id]
 
     def rows(self, trials) -> list[dict]:
-        rows = [trial_row(t, self.sweep, self.epochs, self._plan(t)) for t in trials]
-        return sorted(rows, key=lambda r: str(r["trial_id"]))
+        """One per trial, in the order Tune created them (new trials come last)."""
+        return [trial_row(t, self.sweep, self.epochs, self._plan(t)) for t in trials]
 
     def should_report(self, trials, done: bool = False) -> bool:
         now = time.time()
@@ -587,7 +587,8 @@ class SweepReporter(CLIReporter):
             finished = [r for r in rows if r["status"] in STATUSES]
             head = (f"== sweep {self.sweep_name}: {len(finished)}/{total} trials finished"
                     + (f" ({_counts(finished)})" if finished else "")
-                    + f", {sum(r['status'] == 'running' for r in rows)} running; {elapsed} ==")
+                    + f", {sum(r['status'] == 'running' for r in rows)} running"
+                    + f", {sum(r['status'] == 'pending' for r in rows)} pending; {elapsed} ==")
         lines = [head]
         scored = [r for r in rows if r["best_pmd_unseen"] != "" and r["status"] != "failed"]
         if scored:

@@ -157,7 +157,7 @@ def test_live_table_shows_weights_window_memory_status_epoch_and_best_pmd(capsys
     reporter.report(trials, False)
     live = capsys.readouterr().out
     lines = live.splitlines()
-    assert re.fullmatch(r"== sweep sw: 3/5 trials finished \(1 early_stopped, 1 failed, 1 ok\), 1 running; "
+    assert re.fullmatch(r"== sweep sw: 3/5 trials finished \(1 early_stopped, 1 failed, 1 ok\), 1 running, 1 pending; "
                         r"1 min 1\d s ==", lines[0]), lines[0]
     assert lines[1] == "best so far: trial t0000, PMD unseen 550.1 (x1e-4)"
     header = next(line for line in lines if line.startswith("| trial"))
