@@ -35,7 +35,7 @@ FULL_TOPOLOGY = "notoes"
 REMESH_FACES = 3000
 
 
-def _remesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def remesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A quadric decimation of a mesh: (vertices, faces) of its own topology."""
     simplified = trimesh.Trimesh(vertices, faces, process=False).simplify_quadric_decimation(face_count=REMESH_FACES)
     return np.asarray(simplified.vertices, np.float32), np.asarray(simplified.faces, np.int64)
@@ -64,7 +64,7 @@ def variant_pairs(stream: StreamPairs, split: str, epoch: int, indices: Sequence
                 _, faces = shuffle_vertices(target, faces, perm)
                 target, drive, truth = (x[..., perm, :] for x in (target, drive, truth))
             elif variant == "remeshed":
-                remeshed, faces = _remesh(target, faces)
+                remeshed, faces = remesh(target, faces)
                 on_body = closest_points(remeshed, target, _body_model(FULL_TOPOLOGY).faces)
                 drive, truth = (on_body.on(x, _body_model(FULL_TOPOLOGY).faces) for x in (drive, truth))
                 target = remeshed
