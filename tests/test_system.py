@@ -448,6 +448,7 @@ def test_sweep_job_submitted_to_the_cluster(cluster):
     assert "sweep_job" in cluster.jobs, "not submitted: the training job made no mesh bank"
     status, logs = wait_for_job(cluster, "sweep_job")
     assert status == "SUCCEEDED", logs[-5000:]
+    assert f"== sweep sweep: {TRIALS} trials (" in logs and "| trial " in logs, logs[-5000:]  # its table, in the job's log
     rows = list(csv.DictReader((cluster.root / "runs" / "sweep" / "summary.csv").open()))
     assert len(rows) == TRIALS and all(r["status"] in ("ok", "early_stopped", "adjusted_memory") for r in rows), rows
     _, runs = mlflow_runs(cluster)
