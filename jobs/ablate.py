@@ -124,7 +124,7 @@ def main(argv: list[str]) -> None:
     from aniformer.cli import atomic_path
     from aniformer.evaluate import table_csv, table_markdown
     from aniformer.memory import parameter_count
-    from pipeline.ablation import slug
+    from pipeline.ablation import log_pmd_table, slug
     from pipeline.cluster import connect
     from pipeline.data import prepare_bank
     from pipeline.tracking import quiet_mlflow, start_job_run, ui_hint
@@ -161,6 +161,7 @@ def main(argv: list[str]) -> None:
             with atomic_path(out / filename) as tmp:
                 tmp.write_text(text)
             parent.log_artifact(out / filename, "ablation")
+        log_pmd_table(parent, table, splits, notes={row: " ".join(ablation.variants[row]) or "(base config)" for row in specs})
         parent.log_metrics({f"pmd_{split}.{slug(row)}": value for row, values in table.items()
                             for split, value in values.items()}, step=0)
     print(markdown.split("\n\nEvery variant")[0].strip())

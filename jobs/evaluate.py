@@ -330,6 +330,9 @@ def _log_to_mlflow(job: str, args, files: Path, table, sweep, pairs, seed, split
             metrics = {f"pmd_{split}.{_metric_name(row)}": value
                        for row, values in table.items() for split, value in values.items()}
             tracker.log_metrics(metrics, step=0)
+            from pipeline.ablation import log_pmd_table
+
+            log_pmd_table(tracker, table, splits, artifact_file="evaluation/pmd_table.json")
             if sweep is not None:
                 for i, level in enumerate(next(iter(sweep.values()))):
                     tracker.log_metrics({f"pmd_noise.{_metric_name(row)}": values[level] for row, values in sweep.items()}

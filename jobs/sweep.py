@@ -44,6 +44,7 @@ def main(argv: list[str]) -> None:
     from pipeline.tune import (
         best_row,
         build_tuner,
+        compare_link,
         end_interrupted_runs,
         experiment_exists,
         summarize,
@@ -96,6 +97,9 @@ def main(argv: list[str]) -> None:
               f"window={best['window']}")
     print(f"MLflow parent run: {parent.run_id} in {parent.uri}")
     print(f"  compare trials: {ui_hint(parent.uri)}")
+    link = compare_link(parent, rows)
+    if link:
+        print(f"  its trials side by side: {link}")
     if unfinished:
         print(f"interrupted: {len(unfinished)} trial(s) unfinished; run the same command again to resume",
               file=sys.stderr)
