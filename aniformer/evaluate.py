@@ -288,7 +288,8 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
     scores = {name: {v: [] for v in variants} for name in (*rows, "copy-driver", "static target")}
 
     def score(row: str, variant: str, pred: np.ndarray, truth: np.ndarray) -> None:
-        scores[row][variant].append(float(np.square(pred - truth[frames]).sum(-1).mean()) * PMD_SCALE)
+        error = pmd_per_frame(torch.from_numpy(np.ascontiguousarray(pred)), torch.from_numpy(truth[frames])).mean()
+        scores[row][variant].append(float(error) * PMD_SCALE)
 
     for lo in range(0, pairs, batch_size):
         for pair in variant_pairs(stream, split, 0, range(lo, min(pairs, lo + batch_size)), variants):

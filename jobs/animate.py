@@ -9,13 +9,14 @@ frame_10); every frame must have the first frame's vertices and faces. Target an
 any vertex count, order and connectivity: a mesh that is not the model's Anny topology is first
 registered onto it (aniformer/registration.py: Anny's body fitted to the mesh, a few seconds; the
 result is carried back to the mesh's own vertices). The model runs on the driver's topology when
-that is one of Anny's, else on the checkpoint's (``--template``); a driver that is not an Anny mesh
-is registered on its first frame, which should be close to a standing rest pose. Inputs are human bodies standing z up, in
-``--unit`` (default m). A T-frame window slides over the sequence one frame at a time; overlapping
-predictions of a frame are averaged (``--combine mean``) or the window centred on it is used
-(``--combine center``, always for a regression-head model); see docs/animate.md. The result is placed in world space where the
-driver is (its root motion, scaled to the target's height, feet on the driver's floor);
-``--center`` keeps every frame bounding-box centred instead.
+that is one of Anny's, else on the checkpoint's (``--template``); a driver that is not an Anny
+mesh is registered on its first frame, which should be close to a standing rest pose. Inputs are
+human bodies standing z up, in ``--unit`` (default m). A T-frame window slides over the sequence
+one frame at a time; overlapping predictions of a frame are averaged (``--combine mean``) or the
+window centred on it is used (``--combine center``, always for a regression-head model); see
+docs/animate.md. The result is placed in world space where the driver is (its root motion, scaled
+to the target's height, feet on the driver's floor); ``--center`` keeps every frame bounding-box
+centred instead.
 
 Outputs in ``--out``: frames/frame_NNNN.obj (one per driving frame, in the inputs' unit and axes),
 animation.glb (glTF 2.0: y up, metres, morph targets, lasting N / fps), preview.gif (driver |

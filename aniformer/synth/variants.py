@@ -64,10 +64,10 @@ def variant_pairs(stream: StreamPairs, split: str, epoch: int, indices: Sequence
                 _, faces = shuffle_vertices(target, faces, perm)
                 target, drive, truth = (x[..., perm, :] for x in (target, drive, truth))
             elif variant == "remeshed":
-                remeshed, faces = remesh(target, faces)
-                on_body = closest_points(remeshed, target, _body_model(FULL_TOPOLOGY).faces)
-                drive, truth = (on_body.on(x, _body_model(FULL_TOPOLOGY).faces) for x in (drive, truth))
-                target = remeshed
+                remeshed, remeshed_faces = remesh(target, faces)
+                on_body = closest_points(remeshed, target, faces)
+                drive, truth = (on_body.on(x, faces) for x in (drive, truth))
+                target, faces = remeshed, remeshed_faces
             pair[variant] = {"target": center_bbox(target), "faces": faces, "ground_truth": center_bbox(truth),
                              "copy_driver": center_bbox(drive)}
         pairs.append(pair)
