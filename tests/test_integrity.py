@@ -23,6 +23,8 @@ import pytest
 
 from aniformer.cli import UserError, load_config, run
 from pipeline import data
+from pipeline.data import manifest as bank_manifest
+from pipeline.data import ray_data
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.yaml"
@@ -39,13 +41,13 @@ def make_bank(root: Path) -> Path:
     for i, seqs in enumerate(data.shard_layout(manifest, cfg.shard_mb)):
         verts = [rng.standard_normal((manifest["sequences"]["frames"][s], V, 3)).astype(np.float32) for s in seqs]
         payload = data.shard_bytes(seqs, manifest, verts)
-        path = data._shard_name(i)
-        data._write_file(root / path, payload)
+        path = bank_manifest.shard_name(i)
+        bank_manifest.write_file(root / path, payload)
         shards.append({"path": path, "rows": sum(len(v) for v in verts), "sequences": [seqs[0], seqs[-1] + 1],
                        "first_row": manifest["sequences"]["first_row"][seqs[0]], "bytes": len(payload),
                        "sha256": hashlib.sha256(payload).hexdigest()})
     faces = np.stack([np.arange(V), (np.arange(V) + 1) % V, (np.arange(V) + 2) % V], 1)
-    data._finish_bank(root, manifest, faces, shards)
+    bank_manifest.finish_bank(root, manifest, faces, shards)
     return root
 
 
@@ -140,7 +142,7 @@ def test_manifest_that_is_not_a_bank_manifest_is_one_line(bank, content, words):
     assert str(bank / data.MANIFEST) in message and words in message, message
 
 
-@pytest.mark.parametrize("key", sorted(data._REQUIRED))
+@pytest.mark.parametrize("key", sorted(bank_manifest.REQUIRED_KEYS))
 def test_each_missing_manifest_key_is_named(bank, key):
     edit_manifest(bank, lambda m: m.pop(key))
     message = refusal(lambda: data.load_bank(bank))
@@ -352,7 +354,7 @@ def test_an_incomplete_own_bank_is_regenerated_staged(tmp_path, monkeypatch):
         assert Path(where).parent == out and not bank.joinpath(data.MANIFEST).exists()
         return make_bank(Path(where)) and data.read_manifest(where)
 
-    monkeypatch.setattr(data, "generate_bank", fake_generate)
+    monkeypatch.setattr(ray_data, "generate_bank", fake_generate)
     cfg = data.data_config(load_config(TINY))
     try:
         lock_output(out)
