@@ -10,6 +10,7 @@ and staging directories that a crash does not leave behind. No Ray, no MLflow.
   ``@releases_locks`` on the job's ``main`` releases the lock when ``main`` ends however it is called.
 - ``staging_dir``/``clean_stale_staging``/``swap_dirs``: the pieces of ``cli.staged_output_dir``.
 - ``exclusive(path)``: a short critical section between processes (the first creation of a store).
+- ``natural_key(name)``: the one order of frame and clip files (``frame_2`` before ``frame_10``, case-blind).
 """
 
 from __future__ import annotations
@@ -309,3 +310,8 @@ def exclusive(path: str | os.PathLike) -> Iterator[None]:
                 os.unlink(path)
         finally:
             os.close(fd)
+
+
+def natural_key(name: str) -> list:
+    """Sort key that orders frame_2 before frame_10, ignoring case."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
