@@ -3,6 +3,7 @@
     python jobs/animate.py --target me.obj --driving clips/jump/ --out anim/jump     # the shipped model
     python jobs/animate.py --checkpoint runs/tiny/best.pt --target me.obj --driving clips/jump/ --out anim/jump
     python jobs/animate.py --checkpoint 3f2a...c9 --target me.ply --driving 'clips/run/frame_*.obj' --out anim/run
+    python jobs/animate.py --checkpoint models:/aniformer/latest --target me.obj --driving clips/jump/ --out anim/jump
 
 ``--driving`` is a directory of OBJ/PLY/... frames or a glob, in natural order (frame_2 before
 frame_10); every frame must have the first frame's vertices and faces. Target and driver may have
@@ -45,15 +46,15 @@ from aniformer.cli import ArgumentParser, UserError, run, staged_output_dir  # n
 from aniformer.files import claim_output, releases_locks  # noqa: E402
 from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS  # noqa: E402
 from jobs.evaluate import resolve_device  # noqa: E402
-from pipeline.tracking import resolve_checkpoint  # noqa: E402
+from pipeline.registry import resolve_checkpoint  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
     p = ArgumentParser(prog="animate.py", description=__doc__.split("\n\n")[0],
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--checkpoint", default="pretrained", metavar="CKPT",
-                   help="checkpoint file, MLflow run id, or 'pretrained' (the default: models/aniformer.pt, "
-                        "see docs/model_card.md)")
+                   help="checkpoint file, MLflow run id, registered model (models:/NAME/latest, models:/NAME/VERSION, "
+                        "models:/NAME@ALIAS), or 'pretrained' (the default: models/aniformer.pt, see docs/model_card.md)")
     p.add_argument("--target", required=True, metavar="MESH", help="the mesh to animate (OBJ, PLY, ...)")
     p.add_argument("--driving", required=True, metavar="DIR_OR_GLOB", help="driving frames: a directory or a glob")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")

@@ -4,8 +4,9 @@
     python jobs/evaluate.py --checkpoint 3f2a...c9 --bank data/default --out eval/default \\
         --compare npt=runs/npt/best.pt --compare regression=runs/head/best.pt --noise 0,0.005,0.01,0.02
 
-``--checkpoint`` (and each ``--compare NAME=CKPT``) is a checkpoint file or an MLflow run id (its
-``checkpoints/best.pt`` artifact). A checkpoint trained on a stream (``data.source: stream``) is
+``--checkpoint`` (and each ``--compare NAME=CKPT``) is a checkpoint file, an MLflow run id (its
+``checkpoints/best.pt`` artifact) or a registered model (``models:/aniformer/latest``). A checkpoint
+trained on a stream (``data.source: stream``) is
 scored on the stream's splits, made on the fly (``--topology`` to score on another Anny topology);
 otherwise the bank is ``--bank DIR``, else ``bank/`` beside the checkpoint (where jobs/train.py
 puts it). Rows: the checkpoint, every ``--compare`` model and the baselines: copy-driver, the static
@@ -33,14 +34,16 @@ if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's
 
 from aniformer.cli import ArgumentParser, UserError, run, staged_output_dir  # noqa: E402
 from aniformer.files import claim_output, releases_locks  # noqa: E402
-from pipeline.tracking import RUN_ID, quiet_mlflow, resolve_checkpoint  # noqa: E402
+from pipeline.registry import resolve_checkpoint  # noqa: E402
+from pipeline.tracking import RUN_ID, quiet_mlflow  # noqa: E402
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
     p = ArgumentParser(prog="evaluate.py", description=__doc__.split("\n\n")[0],
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--checkpoint", required=True, metavar="CKPT",
-                   help="checkpoint file, MLflow run id, or pretrained (models/aniformer.pt)")
+                   help="checkpoint file, MLflow run id, registered model (models:/aniformer/latest), "
+                        "or pretrained (models/aniformer.pt)")
     p.add_argument("--out", required=True, metavar="DIR", help="directory for the tables and plots")
     p.add_argument("--bank", metavar="DIR", help="mesh bank (default: bank/ beside the checkpoint; none for a stream)")
     p.add_argument("--topology", help="stream checkpoints: the Anny topology of the pairs (default: the training one)")
@@ -94,6 +97,8 @@ def _model_label(state: dict, model) -> str:
 
 
 def _default_name(spec: str) -> str:
+    if spec.startswith("models:/"):  # a registered model: models:/aniformer/3 -> aniformer-3
+        return re.sub(r"[/@]", "-", spec.removeprefix("models:/").rstrip("/"))
     match = RUN_ID.fullmatch(spec)
     if match and not Path(spec).exists():
         return match.group(1)[:8]

@@ -9,7 +9,10 @@ Without RAY_ADDRESS a local Ray instance is started (dashboard on 127.0.0.1 only
 resumes from the latest checkpoint (the newest intact one) and continues the same MLflow run, which is
 identified by the absolute `--out` and the name. One job at a time per `--out`: it is locked (`OUT/.lock`)
 and a second job is refused, naming the first. Outputs: `OUT/best.pt`,
-`OUT/last.pt`, Ray's checkpoints under `OUT/ray/NAME`, and the MLflow run (printed at the end).
+`OUT/last.pt`, Ray's checkpoints under `OUT/ray/NAME`, and the MLflow run (printed at the end), which
+holds `OUT/best.pt` as an MLflow model registered as a new version of `aniformer` (`--register-as
+NAME`; `--no-register` logs it to the run only): `jobs/animate.py --checkpoint models:/aniformer/latest`
+and `mlflow.pyfunc.load_model("models:/aniformer/latest")` load it (pipeline/registry.py).
 """
 
 from __future__ import annotations
@@ -31,16 +34,23 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bar (it is shown only when stderr is a terminal anyway)")
     parser.add_argument("--verbose", action="store_true", help="Ray's own INFO logs (Ray Data, Ray Train)")
+    parser.add_argument("--register-as", default="aniformer", metavar="NAME",
+                        help="registered MLflow model the best checkpoint becomes a new version of (default: aniformer)")
+    parser.add_argument("--no-register", action="store_true",
+                        help="log the best checkpoint as an MLflow model of the run, but register no version")
     args = parser.parse_args(argv)
     config = load_config(args.config, args.overrides)
+    from pipeline.registry import check_registered_name
     from pipeline.train import RunSpec
 
     spec = RunSpec.from_config(config)  # bad config: one line before anything starts
+    register_as = None if args.no_register else check_registered_name(args.register_as)
     out, name, bank = RunJobParser.locations(args)
 
     from pipeline.cluster import connect
     from pipeline.console import Console, quiet_ray
     from pipeline.data import prepare_bank
+    from pipeline.registry import log_best_model
     from pipeline.tracking import quiet_mlflow, start_job_run, ui_hint
     from pipeline.train import train_job
 
@@ -54,11 +64,13 @@ def main(argv: list[str]) -> None:
     # `ray job stop` and kill send SIGTERM: `run` makes it exit 143, the run ends KILLED (never RUNNING).
     with tracker.ended():
         result = train_job(spec, bank, out, name, tracker, faces, console)
+        model_uri = log_best_model(tracker, out / "best.pt", register_as)
     metrics = result.metrics or {}
     print(f"trained {name}: epoch {metrics.get('epoch')}, PMD seen {metrics.get('pmd_seen', float('nan')):.3f}, "
           f"unseen {metrics.get('pmd_unseen', float('nan')):.3f} (x1e-4)")
     print(f"checkpoints: {out / 'best.pt'} (best unseen PMD), {out / 'last.pt'}")
     print(f"MLflow run: {tracker.run_id} in {tracker.uri}")
+    print(f"  best model: {model_uri} (jobs/animate.py --checkpoint {model_uri}, or mlflow.pyfunc.load_model)")
     print(f"  compare runs: {ui_hint(tracker.uri)}")
 
 
