@@ -23,10 +23,10 @@ from aniformer.cli import run
 @pytest.fixture(scope="module")
 def store(tmp_path_factory) -> dict:
     """A store holding one training run whose best checkpoint is registered as `aniformer` version 1."""
+    import mlflow
+
     from pipeline.registry import log_best_model
     from pipeline.tracking import start_job_run
-
-    import mlflow
 
     root = tmp_path_factory.mktemp("registry")
     store_uri = f"sqlite:///{root / 'mlflow.db'}"
@@ -102,15 +102,14 @@ def test_animate_by_registered_name_as_from_the_checkpoint_file(in_store, tmp_pa
     for k, frame in enumerate(np.concatenate([example["driving"][0], example["driving"][0][::-1]])):
         write_obj(tmp_path / "driving" / f"frame_{k}.obj", frame, example["faces"])
     write_obj(tmp_path / "target.obj", example["target"][0], example["faces"])
-    frames = {}
-    for checkpoint in ("models:/aniformer/latest", "models:/aniformer/1", in_store["checkpoint"]):
-        out = tmp_path / f"anim{len(frames)}"
+    frames = []
+    for k, checkpoint in enumerate(("models:/aniformer/latest", "models:/aniformer/1", str(in_store["checkpoint"]))):
+        out = tmp_path / f"anim{k}"
         animate_main(["--checkpoint", checkpoint, "--target", tmp_path / "target.obj", "--driving", tmp_path / "driving",
                       "--out", out, "--no-glb", "--preview-frames", 0, "--no-progress"])
-        assert json.loads((out / "animation.json").read_text())["checkpoint"] == str(checkpoint)
-        frames[str(checkpoint)] = [p.read_text() for p in sorted((out / "frames").glob("*.obj"))]
-    assert len(frames) == 3 and len(frames["models:/aniformer/1"]) == 6
-    assert frames["models:/aniformer/latest"] == frames["models:/aniformer/1"] == frames[str(in_store["checkpoint"])]
+        assert json.loads((out / "animation.json").read_text())["checkpoint"] == checkpoint
+        frames.append([p.read_text() for p in sorted((out / "frames").glob("*.obj"))])
+    assert len(frames[0]) == 6 and frames[0] == frames[1] == frames[2]
 
 
 @pytest.mark.parametrize("job,spec", [("animate", "models:/nosuch/latest"), ("animate", "models:/aniformer/7"),
