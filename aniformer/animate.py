@@ -16,6 +16,12 @@ predictions combine (``combine``):
 
 A sequence shorter than T is padded at the end by repeating its last frame.
 
+Huge meshes: attention is linear in memory but quadratic in time with the vertex count. Before the
+first window, ``animate_sequence`` estimates the inference time from the model's FLOP count
+(``forward_flops``) and a matrix product timed on the device (``matmul_flops_per_second``). Above
+``WARN_SECONDS`` it warns on stderr, above ``REFUSE_SECONDS`` it refuses unless ``force``; both
+give the estimate and point to decimating the target first.
+
 Centring: every driving frame and the target are bounding-box centred like the training pairs
 (``center="mesh"``; ``"window"`` centres each window as a whole, ``"none"`` not at all: use the
 checkpoint's ``data.center``). The model outputs centred meshes; ``root_motion`` gives the
@@ -37,17 +43,77 @@ import json
 import os
 import re
 import struct
+import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from aniformer.cli import atomic_path
+from aniformer.cli import UserError, atomic_path
 from aniformer.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, MeshError, center_bbox, load_mesh
 
 COMBINE_RULES = ("mean", "center")
 CENTER_MODES = ("mesh", "window", "none")
+# Estimated inference times beyond which `animate_sequence` warns, and refuses unless `force`.
+WARN_SECONDS = 10 * 60
+REFUSE_SECONDS = 2 * 3600
+DECIMATE_HINT = ("decimate the target first (trimesh's simplify_quadric_decimation, as "
+                 "aniformer.synth.variants.remesh does; bench/remesh_sample.py shows it on a sample)")
+MIN_CHECKED_FLOPS = 1e12  # below: under a minute even on 2 CPU cores; not worth timing a matrix product
+_MATMUL_RATES: dict[str, float] = {}  # device -> measured FLOP/s, once per process
+
+
+# --------------------------------------------------------------------------------------------
+# Inference time of huge meshes
+# --------------------------------------------------------------------------------------------
+
+
+def matmul_flops_per_second(device: str | torch.device) -> float:
+    """FLOP/s of a float32 matrix product on `device`: the best of 6 timed products, once per process
+    (well under a second on 2 CPU cores). The model's layers reach less (2 shared CPU cores: 60-100
+    GFLOP/s for the product, 23-74 for windows of 20,000-163,842 vertices), so times estimated from it
+    are lower bounds."""
+    device = torch.device(device)
+    if str(device) not in _MATMUL_RATES:
+        n = 2048 if device.type == "cuda" else 1024
+        a = torch.randn(n, n, device=device)
+        sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+        a @ a  # warm-up: thread pool, cuBLAS handle
+        best = float("inf")
+        for _ in range(6):  # the fastest: the least disturbed by other processes
+            sync()
+            start = time.perf_counter()
+            a @ a
+            sync()
+            best = min(best, time.perf_counter() - start)
+        _MATMUL_RATES[str(device)] = 2 * n**3 / best
+    return _MATMUL_RATES[str(device)]
+
+
+def check_inference_time(model: Callable, windows: int, vertices: tuple[int, int], device: str | torch.device,
+                         force: bool = False) -> float | None:
+    """The estimated seconds of `windows` forward windows of `vertices` = (driving, target) vertices:
+    warns above `WARN_SECONDS`, `UserError` above `REFUSE_SECONDS` unless `force`. None when not
+    checked: a model without `forward_flops` (`model` may be a functools.partial of one), or under
+    `MIN_CHECKED_FLOPS` in all."""
+    flops_of = getattr(getattr(model, "func", model), "forward_flops", None)
+    if flops_of is None:
+        return None
+    flops = windows * flops_of(*vertices)
+    if flops < MIN_CHECKED_FLOPS:
+        return None
+    rate = matmul_flops_per_second(device)
+    seconds = flops / rate
+    if seconds > WARN_SECONDS:
+        estimate = (f"{windows:,} windows of {vertices[0]:,} driving and {vertices[1]:,} target vertices: at least "
+                    f"~{seconds / 60:,.0f} min on {device} ({flops / 1e12:,.1f} TFLOP at the measured "
+                    f"{rate / 1e9:,.0f} GFLOP/s; time grows with the square of the vertex count)")
+        if seconds > REFUSE_SECONDS and not force:
+            raise UserError(f"{estimate}; {DECIMATE_HINT}, or pass --force to run it anyway")
+        print(f"warning: {estimate}; to be faster, {DECIMATE_HINT}", file=sys.stderr)
+    return seconds
 
 
 # --------------------------------------------------------------------------------------------
@@ -160,11 +226,14 @@ def animate_sequence(
     batch_size: int = 8,
     device: str | torch.device = "cpu",
     progress: Callable[[int], None] | None = None,
+    force: bool = False,
 ) -> np.ndarray:
     """Animate ``target (V2, 3)`` with ``driving (N, V1, 3)`` -> ``(N, V2, 3)`` float32 (see module doc).
 
     ``model(driving (B, T, V1, 3), target (B, V2, 3))`` returns the frames ``outputs`` of each
-    window; ``progress(k)`` is called after every batch with the number of windows it held.
+    window; ``progress(k)`` is called after every batch with the number of windows it held. Before
+    the first window the time is estimated (``check_inference_time``): a warning beyond
+    ``WARN_SECONDS``, a ``UserError`` beyond ``REFUSE_SECONDS`` unless ``force``.
     """
     if center not in CENTER_MODES:
         raise ValueError(f"center must be one of {CENTER_MODES}, got {center!r}")
@@ -180,6 +249,7 @@ def animate_sequence(
     index = torch.cat([torch.zeros(front, dtype=torch.long), torch.arange(N),
                        torch.full((back,), N - 1, dtype=torch.long)])
     starts = torch.arange(len(index) - window + 1)
+    check_inference_time(model, len(starts), (raw.shape[1], V2), device, force)
     drv = raw if center == "window" else _center(raw.unsqueeze(0), center)[0]
     tgt = (center_bbox(target_t) if center != "none" else target_t).to(device)
     total = torch.zeros(N, V2, 3, dtype=torch.float64)

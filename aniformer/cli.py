@@ -3,6 +3,11 @@ one-line errors for bad input, and atomic writes so no half-written file is ever
 
 Every job's `main` raises `UserError` for anything the user can fix; `run` turns it into one line
 on stderr and exit status 2 (the convention of argparse itself).
+
+Configs are read with `ConfigLoader`: YAML's anchors and aliases are allowed (configs/seeds.yaml
+names an override once), but a document whose aliases would expand to more than `MAX_CONFIG_NODES`
+nodes (a "billion laughs" bomb) or refer to themselves is refused as it is composed, before anything
+is built from it.
 """
 
 from __future__ import annotations
@@ -33,6 +38,52 @@ class ArgumentParser(argparse.ArgumentParser):
         raise UserError(f"{message} (see --help)")
 
 
+# A config has a few hundred nodes; nine nested aliases of ten already expand to 10^9.
+MAX_CONFIG_NODES = 100_000
+
+
+def _expanded_nodes(root: yaml.Node) -> int:
+    """Nodes of `root` with every alias expanded, counted once per distinct node (linear in the
+    document's size); `UserError` on a node that contains itself."""
+    sizes: dict[int, int] = {}
+    open_nodes: set[int] = set()
+
+    def size(node: yaml.Node) -> int:
+        key = id(node)
+        if key in sizes:
+            return sizes[key]
+        if key in open_nodes:
+            raise UserError(f"a YAML alias refers to the node that contains it (line {node.start_mark.line + 1})")
+        open_nodes.add(key)
+        if isinstance(node, yaml.SequenceNode):
+            total = 1 + sum(size(child) for child in node.value)
+        elif isinstance(node, yaml.MappingNode):
+            total = 1 + sum(size(k) + size(v) for k, v in node.value)
+        else:
+            total = 1
+        open_nodes.discard(key)
+        sizes[key] = min(total, MAX_CONFIG_NODES + 1)  # capped: the counts of a bomb stay small integers
+        return sizes[key]
+
+    return size(root)
+
+
+class ConfigLoader(yaml.SafeLoader):
+    """`yaml.SafeLoader` that bounds alias expansion: each document is measured as it is composed,
+    before a Python object is constructed from it."""
+
+    def compose_document(self):
+        node = super().compose_document()
+        if _expanded_nodes(node) > MAX_CONFIG_NODES:
+            raise UserError(f"YAML aliases expand to more than {MAX_CONFIG_NODES:,} nodes (an alias bomb?)")
+        return node
+
+
+def parse_yaml(text: str):
+    """`text` parsed as a config (YAML, with `ConfigLoader`'s bound on alias expansion)."""
+    return yaml.load(text, Loader=ConfigLoader)  # noqa: S506 (a SafeLoader subclass)
+
+
 def load_config(path: str | os.PathLike | None, overrides: Sequence[str] = ()) -> dict:
     """Read a YAML config and apply dotted `key=value` overrides (values parsed as YAML)."""
     config: dict = {}
@@ -41,9 +92,11 @@ def load_config(path: str | os.PathLike | None, overrides: Sequence[str] = ()) -
         if not path.is_file():
             raise UserError(f"config file not found: {path}")
         try:
-            config = yaml.safe_load(path.read_text()) or {}
+            config = parse_yaml(path.read_text()) or {}
         except yaml.YAMLError as e:
             raise UserError(f"config {path} is not valid YAML: {str(e).splitlines()[0]}") from None
+        except UserError as e:
+            raise UserError(f"config {path}: {e}") from None
         if not isinstance(config, dict):
             raise UserError(f"config {path} must be a mapping at the top level")
     return apply_overrides(config, overrides)
@@ -58,9 +111,11 @@ def apply_overrides(config: dict, overrides: Sequence[str]) -> dict:
         if not sep or not key:
             raise UserError(f"override {item!r} is not of the form key=value")
         try:
-            value = yaml.safe_load(raw)
+            value = parse_yaml(raw)
         except yaml.YAMLError:
             value = raw
+        except UserError as e:
+            raise UserError(f"override {key}: {e}") from None
         node = config
         *parents, leaf = key.split(".")
         for part in parents:

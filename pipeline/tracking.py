@@ -14,6 +14,12 @@ whatever directory the process happens to run in). `mlflow ui --backend-store-ur
 shows the runs. The driver creates and ends runs; the rank-0 training worker logs into them by id.
 A fresh sqlite store is created (its tables migrated) by one process at a time (a file lock beside
 it), so jobs started together on a new `mlflow.db` all succeed.
+
+A tracking server (`MLFLOW_TRACKING_URI=http...`) is probed once per process before the first
+client is made: one request to its `/health` with a `PROBE_TIMEOUT_S` timeout and no retries. One
+that does not answer is a one-line error within seconds, instead of MLflow's own retries with
+backoff (7 of them by default, minutes). Requests after the probe keep MLflow's retries: a server
+that answered once and then hiccups is waited for.
 """
 
 from __future__ import annotations
@@ -46,13 +52,45 @@ def tracking_uri() -> str:
 
 
 _READY: set[str] = set()  # stores this process has opened (and so created, if they were new)
+PROBE_TIMEOUT_S = 5  # to connect, and again to read the answer of the tracking server's /health
+
+
+def require_reachable(uri: str) -> None:
+    """`UserError` unless the tracking server of `uri` answers an HTTP request within
+    `PROBE_TIMEOUT_S` (any status: behind authentication it answers 401). Other stores, and servers
+    this process reached already, are not probed."""
+    if uri in _READY or not uri.startswith(("http://", "https://")):
+        return
+    from mlflow.utils.credentials import get_default_host_creds
+    from mlflow.utils.rest_utils import http_request
+
+    try:  # MLflow's own request: its TLS and credential settings apply
+        http_request(get_default_host_creds(uri), "/health", "GET", max_retries=0, timeout=PROBE_TIMEOUT_S,
+                     raise_on_status=False)
+    except Exception as e:  # refused, timed out, no such host, TLS: all one line
+        raise UserError(f"MLflow tracking server {uri} does not answer ({_root_cause(e)}); start it, or unset "
+                        "MLFLOW_TRACKING_URI to use ./mlflow.db") from None
+    _READY.add(uri)
+
+
+def _root_cause(error: BaseException) -> str:
+    """The innermost error's message ("[Errno 111] Connection refused"), not requests' and urllib3's
+    wrappers around it."""
+    seen = []
+    while error is not None and error not in seen:
+        seen.append(error)
+        error = error.__cause__ or error.__context__ or getattr(error, "reason", None)
+        error = error if isinstance(error, BaseException) else None
+    message = " ".join(str(seen[-1]).split()) or type(seen[-1]).__name__
+    return message.rsplit(": ", 1)[-1][:200]  # urllib3 prefixes the connection object's repr
 
 
 def client_for(uri: str) -> MlflowClient:
-    """An MlflowClient of store `uri`. The first one of a process on a sqlite store is made under a
-    file lock beside the database (`mlflow.db.lock`, removed after): opening a new store creates and
-    migrates its tables, and two processes doing that at once break it ("Online migration expected
-    to match one row")."""
+    """An MlflowClient of store `uri`. A tracking server is probed first (`require_reachable`). The
+    first one of a process on a sqlite store is made under a file lock beside the database
+    (`mlflow.db.lock`, removed after): opening a new store creates and migrates its tables, and two
+    processes doing that at once break it ("Online migration expected to match one row")."""
+    require_reachable(uri)
     if uri in _READY or not uri.startswith("sqlite:///"):
         return MlflowClient(uri)
     from aniformer.files import exclusive
@@ -267,6 +305,7 @@ def resolve_checkpoint(spec: str, scratch: Path) -> Path:
     if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).is_file():
         raise UserError(f"MLflow run {match.group(1)}: there is no tracking store at {uri.removeprefix('sqlite:///')} "
                         "(set MLFLOW_TRACKING_URI, or run from the directory that holds mlflow.db)")
+    require_reachable(uri)
     try:
         local = mlflow.artifacts.download_artifacts(run_id=match.group(1), artifact_path=CHECKPOINT_ARTIFACT,
                                                     dst_path=str(scratch / match.group(1)), tracking_uri=uri)

@@ -1,0 +1,306 @@
+"""Limits before work (issue 18, items 6 and 7): checkpoints whose config would allocate gigabytes, YAML
+alias bombs, huge meshes, an unreachable tracking server, and what a job's local Ray listens on.
+
+Each refusal is checked to come before the work it guards: the checkpoint's model is never built off
+the meta device, the bomb is refused as it is composed, the mesh before its first window, the server
+within seconds. Everything here is tiny and fast except the Ray listeners (a real local Ray: slow).
+"""
+
+from __future__ import annotations
+
+import http.server
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from test_animate import animate_main, make_checkpoint, write_driver
+
+from aniformer import animate, checkpoint
+from aniformer.cli import UserError, apply_overrides, load_config, run
+from aniformer.model import AniFormer, AniFormerConfig
+from pipeline import tracking
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "configs" / "tiny.yaml"
+
+
+def one_line_error(capsys, call) -> str:
+    """The message of `call` under `cli.run`: exit status 2 and one line on stderr."""
+    with pytest.raises(SystemExit) as exit_:
+        run(call)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("error: "), err
+    return err
+
+
+# ------------------------------------------------------------------ checkpoints: sized from the config
+
+
+def edited_checkpoint(path: Path, edit) -> Path:
+    """make_checkpoint's tiny model, its saved state changed by `edit(state)`."""
+    make_checkpoint(path)
+    state = torch.load(path, weights_only=True)
+    edit(state)
+    torch.save(state, path)
+    return path
+
+
+@pytest.fixture
+def only_meta_builds(monkeypatch):
+    """`build_model` that fails the test when a model would be built off the meta device, i.e. with
+    its weights allocated (3.8 GB for channels [8192, 8192]) before the checks ran."""
+    real = checkpoint.build_model
+
+    def build(name, section):
+        assert torch.get_default_device().type == "meta", "the model was built before its config was checked"
+        return real(name, section)
+
+    monkeypatch.setattr(checkpoint, "build_model", build)
+
+
+def test_a_config_larger_than_its_state_dict_is_refused_before_the_model_is_built(tmp_path, only_meta_builds):
+    path = edited_checkpoint(tmp_path / "wide.pt", lambda s: s["config"]["model"].update(channels=[8192, 8192]))
+    assert path.stat().st_size < 300_000
+    start = time.perf_counter()
+    with pytest.raises(UserError, match=r"describes 873,\d{3},\d{3} parameters, the file holds 2,564"):
+        checkpoint.model_from_checkpoint(path)
+    assert time.perf_counter() - start < 5
+
+
+def test_a_config_beyond_any_sane_model_is_refused_by_its_parameter_count(tmp_path, only_meta_builds):
+    path = edited_checkpoint(tmp_path / "huge.pt", lambda s: s["config"]["model"].update(channels=[65536, 65536]))
+    with pytest.raises(UserError, match=r"a model of 55,\d{3},\d{3},\d{3} parameters \(208.0 GiB\); refusing more than"):
+        checkpoint.model_from_checkpoint(path)
+
+
+@pytest.mark.parametrize("config, words", [("model: {channels: [8]}", "config is a str, not a mapping"),
+                                           ({"model": ["aniformer"]}, "model config is a list, not a mapping")])
+def test_a_config_that_is_not_a_mapping_is_one_line(tmp_path, capsys, config, words):
+    path = edited_checkpoint(tmp_path / "bad.pt", lambda s: s.update(config=config))
+    assert words in one_line_error(capsys, lambda argv: checkpoint.model_from_checkpoint(path))
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_weights_are_refused_at_load(tmp_path, value):
+    def poison(state):
+        state["model"]["to_xyz.weight"][0, 0] = value
+
+    path = edited_checkpoint(tmp_path / "diverged.pt", poison)
+    with pytest.raises(UserError, match=r"not finite \(1 NaN or infinite values in to_xyz.weight\)"):
+        checkpoint.model_from_checkpoint(path)
+
+
+def test_the_animate_job_refuses_non_finite_weights_in_one_line(tmp_path, capsys):
+    path = edited_checkpoint(tmp_path / "diverged.pt", lambda s: s["model"]["to_xyz.bias"].fill_(float("nan")))
+    target = write_driver(tmp_path / "driving", frames=3) / "frame_0.obj"
+    err = one_line_error(capsys, lambda argv: animate_main(["--checkpoint", path, "--target", target, "--driving",
+                                                            tmp_path / "driving", "--out", tmp_path / "anim"]))
+    assert "weights are not finite" in err and not (tmp_path / "anim").exists()
+
+
+def test_intact_checkpoints_still_load(tmp_path):
+    model, _ = checkpoint.model_from_checkpoint(make_checkpoint(tmp_path / "ok.pt"))
+    assert isinstance(model, AniFormer)
+    shipped, _ = checkpoint.model_from_checkpoint(checkpoint.PRETRAINED)
+    assert sum(p.numel() for p in shipped.parameters()) == 46_629
+
+
+# ------------------------------------------------------------------------------ YAML alias bombs
+
+
+def laughs(levels: int = 9) -> str:
+    """A billion-laughs list: level k holds ten aliases of level k - 1, 10^levels ints in all."""
+    rows = ["  - &l0 [1, 2, 3, 4, 5, 6, 7, 8, 9, 10]"]
+    rows += [f"  - &l{k} [{', '.join([f'*l{k - 1}'] * 10)}]" for k in range(1, levels)]
+    return "\n".join(rows)
+
+
+def test_an_alias_bomb_in_a_real_key_is_refused_fast(tmp_path, capsys, job_main):
+    text = TINY.read_text()
+    assert "  milestones: [100]\n" in text
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text(text.replace("  milestones: [100]\n", f"  milestones:\n{laughs()}\n"))
+    assert bomb.stat().st_size < 5_000
+    start = time.perf_counter()
+    with pytest.raises(UserError, match="aliases expand to more than 100,000 nodes"):
+        load_config(bomb)
+    assert time.perf_counter() - start < 2
+    err = one_line_error(capsys, lambda argv: job_main("train")(["--config", str(bomb), "--out", str(tmp_path / "o")]))
+    assert "bomb.yaml: YAML aliases expand" in err
+
+
+def test_an_alias_bomb_in_an_override_is_refused():
+    with pytest.raises(UserError, match="override train.milestones: YAML aliases expand"):
+        apply_overrides({}, [f"train.milestones=[{laughs().replace('  - ', '').replace(chr(10), ', ')}]"])
+
+
+def test_a_recursive_alias_is_refused(tmp_path):
+    path = tmp_path / "loop.yaml"
+    path.write_text("train:\n  milestones: &loop [1, *loop]\n")
+    with pytest.raises(UserError, match="alias refers to the node that contains it"):
+        load_config(path)
+
+
+def test_anchors_of_an_ordinary_size_still_work():
+    config = load_config(ROOT / "configs" / "seeds.yaml")  # names NPT's override once, with an anchor
+    runs = json.dumps(config)
+    assert runs.count("model={name: npt") == 5
+
+
+# ---------------------------------------------------------------------------------- huge meshes
+
+
+@pytest.fixture
+def slow_device(monkeypatch):
+    """A device measured at 1 GFLOP/s, whatever this machine does."""
+    monkeypatch.setattr(animate, "_MATMUL_RATES", {"cpu": 1e9})
+
+
+def tiny_model() -> AniFormer:
+    return AniFormer(AniFormerConfig(channels=(16,), extractor_channels=(8, 16), heads=2, window=3))
+
+
+def test_a_huge_mesh_is_refused_with_an_estimate_and_a_pointer_to_decimation(slow_device):
+    model = tiny_model()
+    with pytest.raises(UserError) as refused:
+        animate.check_inference_time(model, 28, (163_842, 163_842), "cpu")
+    flops, message = 28 * model.forward_flops(163_842, 163_842), str(refused.value)
+    assert f"at least ~{flops / 1e9 / 60:,.0f} min on cpu ({flops / 1e12:,.1f} TFLOP at the measured 1 GFLOP/s" in message
+    assert "simplify_quadric_decimation" in message and "--force" in message
+
+
+def test_force_runs_a_huge_mesh_with_a_warning_and_mid_sized_ones_only_warn(slow_device, capsys):
+    model = tiny_model()
+    assert animate.check_inference_time(model, 28, (163_842, 163_842), "cpu", force=True) > animate.REFUSE_SECONDS
+    assert capsys.readouterr().err.startswith("warning: 28 windows of 163,842 driving and 163,842 target vertices")
+    seconds = animate.check_inference_time(model, 28, (20_000, 20_000), "cpu")
+    assert animate.WARN_SECONDS < seconds < animate.REFUSE_SECONDS and "warning:" in capsys.readouterr().err
+
+
+def test_small_meshes_are_not_timed(monkeypatch, capsys):
+    monkeypatch.setattr(animate, "matmul_flops_per_second", lambda device: pytest.fail("timed a small mesh"))
+    assert animate.check_inference_time(tiny_model(), 28, (6_890, 6_890), "cpu") is None
+    assert capsys.readouterr().err == ""
+
+
+def test_the_matmul_rate_is_measured():
+    rate = animate.matmul_flops_per_second("cpu")
+    assert 1e8 < rate < 1e14 and animate.matmul_flops_per_second("cpu") == rate  # measured once
+
+
+def test_the_animate_job_refuses_before_its_first_window(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(animate, "_MATMUL_RATES", {"cpu": 1.0})  # 1 FLOP/s: any mesh is huge
+    monkeypatch.setattr(animate, "MIN_CHECKED_FLOPS", 0)
+    driving = write_driver(tmp_path / "driving", frames=4)
+    ckpt = make_checkpoint(tmp_path / "best.pt")
+    argv = ["--checkpoint", ckpt, "--target", driving / "frame_0.obj", "--driving", driving, "--out", tmp_path / "anim",
+            "--device", "cpu", "--no-progress"]
+    err = one_line_error(capsys, lambda a: animate_main(argv))
+    assert "2 windows of 162 driving and 162 target vertices" in err and "decimate the target" in err
+    assert not (tmp_path / "anim").exists()
+
+
+# ------------------------------------------------------------------------- unreachable tracking
+
+
+@pytest.fixture
+def fresh_probe(monkeypatch):
+    monkeypatch.setattr(tracking, "_READY", set())
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_tracking_server_that_refuses_connections_fails_in_one_line(tmp_path, monkeypatch, fresh_probe, capsys):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://127.0.0.1:{free_port()}")
+    start = time.perf_counter()
+    err = one_line_error(capsys, lambda argv: tracking.resolve_checkpoint("0123456789abcdef" * 2, tmp_path))
+    assert "does not answer ([Errno 111] Connection refused)" in err
+    with pytest.raises(UserError, match="does not answer"):
+        tracking.start_job_run("job", {"a": 1}, out=tmp_path / "out")
+    assert time.perf_counter() - start < 3
+
+
+def test_a_tracking_server_that_never_answers_fails_within_the_probe_timeout(tmp_path, monkeypatch, fresh_probe):
+    silent = socket.socket()
+    silent.bind(("127.0.0.1", 0))
+    silent.listen()  # accepts (the kernel does) and never says a word
+    monkeypatch.setattr(tracking, "PROBE_TIMEOUT_S", 1)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://127.0.0.1:{silent.getsockname()[1]}")
+    start = time.perf_counter()
+    try:
+        with pytest.raises(UserError, match="does not answer .*timed out"):
+            tracking.start_job_run("job", {"a": 1}, out=tmp_path / "out")
+    finally:
+        silent.close()
+    assert time.perf_counter() - start < 4
+
+
+class Unauthorized(http.server.BaseHTTPRequestHandler):
+    def do_GET(self):
+        self.send_response(401)
+        self.end_headers()
+
+    def log_message(self, *args):
+        pass
+
+
+def test_a_server_that_answers_passes_the_probe_once(fresh_probe):
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Unauthorized)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    uri = f"http://127.0.0.1:{server.server_port}"
+    try:
+        tracking.require_reachable(uri)  # 401 behind authentication: it is there
+    finally:
+        server.shutdown()
+        server.server_close()
+    tracking.require_reachable(uri)  # reached before: not probed again (the server is gone now)
+
+
+# ------------------------------------------------------------------------------ Ray's listeners
+
+LISTENERS = """
+import json, ray, psutil
+from pipeline.cluster import connect
+connect()
+me = psutil.Process()
+pids = {me.pid} | {p.pid for p in me.children(recursive=True)}
+found = [(c.laddr.ip, c.laddr.port, psutil.Process(c.pid).name()) for c in psutil.net_connections(kind="inet")
+         if c.status == psutil.CONN_LISTEN and c.pid in pids]
+print(json.dumps({"listeners": found, "metrics_port": ray.nodes()[0]["MetricsExportPort"]}))
+ray.shutdown()
+"""
+
+
+@pytest.mark.slow
+def test_a_jobs_local_ray_listens_on_localhost_only():
+    """pipeline.cluster.connect() without RAY_ADDRESS, in a process of its own: every TCP socket its
+    Ray processes listen on (GCS, raylet, workers, dashboard, agents, Prometheus exporters)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    env["RAY_TMPDIR"] = tempfile.mkdtemp(prefix="ray", dir="/tmp")
+    try:
+        done = subprocess.run([sys.executable, "-c", LISTENERS], cwd=ROOT, env=env, capture_output=True, text=True,
+                              timeout=240)
+    finally:
+        shutil.rmtree(env["RAY_TMPDIR"], ignore_errors=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    listeners = report["listeners"]
+    names = {name for _, _, name in listeners}
+    assert {"gcs_server", "raylet", "ray::DashboardAgent"} <= names, listeners
+    assert report["metrics_port"] in {port for _, port, _ in listeners}  # the node's Prometheus exporter
+    outside = [entry for entry in listeners if entry[0] not in ("127.0.0.1", "::ffff:127.0.0.1", "::1")]
+    assert not outside, f"listening beyond this machine: {outside}"
