@@ -41,7 +41,6 @@ from __future__ import annotations
 import glob
 import json
 import os
-import re
 import struct
 import sys
 import time
@@ -51,8 +50,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from aniformer.cli import UserError, atomic_path
-from aniformer.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, MeshError, center_bbox, load_mesh
+from aniformer.errors import MeshError, UserError
+from aniformer.files import atomic_path, natural_key
+from aniformer.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, center_bbox, load_mesh
 
 COMBINE_RULES = ("mean", "center")
 CENTER_MODES = ("mesh", "window", "none")
@@ -119,11 +119,6 @@ def check_inference_time(model: Callable, windows: int, vertices: tuple[int, int
 # --------------------------------------------------------------------------------------------
 # Driving sequences from files
 # --------------------------------------------------------------------------------------------
-
-
-def natural_key(name: str) -> list:
-    """Sort key that orders frame_2 before frame_10."""
-    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
 def driving_files(spec: str | os.PathLike) -> list[Path]:

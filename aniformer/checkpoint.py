@@ -22,7 +22,8 @@ import torch
 from torch import nn
 
 from aniformer.baselines import build_model
-from aniformer.cli import UserError, atomic_path
+from aniformer.errors import UserError
+from aniformer.files import atomic_path
 
 #: The model shipped with the project (docs/model_card.md), what ``--checkpoint pretrained`` names.
 PRETRAINED = Path(__file__).resolve().parents[1] / "models" / "aniformer.pt"

@@ -1,5 +1,5 @@
-"""Shared command-line plumbing for the jobs: `--config FILE` plus `key=value` overrides,
-one-line errors for bad input, and atomic writes so no half-written file is ever left behind.
+"""Shared command-line plumbing for the jobs: `--config FILE` plus `key=value` overrides, and
+one-line errors for bad input (atomic writes and output directories are `aniformer.files`).
 
 Every job's `main` raises `UserError` for anything the user can fix; `run` turns it into one line
 on stderr and exit status 2 (the convention of argparse itself).
@@ -13,22 +13,18 @@ is built from it.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import copy
 import dataclasses
 import os
-import shutil
 import sys
-import tempfile
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-
-class UserError(Exception):
-    """Bad input the user can fix: reported as one line, exit status 2."""
+from aniformer.errors import UserError
+from aniformer.files import lock_output, release_locks
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -142,24 +138,6 @@ def from_dict(cls: type, values: dict | None, section: str):
         raise UserError(f"[{section}] {e}") from None
 
 
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside `path`; rename it into place only if the block succeeds."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; give the mode a plain open() would
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 class RunJobParser(ArgumentParser):
     """The arguments of the jobs that run on Ray (train, sweep, ablate): `--config FILE`, `--out DIR`,
     `--name`, `--bank`, `--experiment` and `key=value` overrides."""
@@ -177,8 +155,6 @@ class RunJobParser(ArgumentParser):
     def locations(args: argparse.Namespace) -> tuple[Path, str, Path]:
         """(out, job name, bank) of parsed arguments; `out` is created and locked for this job
         (`files.lock_output`: a second job on it is refused), the name checked."""
-        from aniformer.files import lock_output
-
         out = Path(args.out).expanduser().resolve()
         name = job_name(args.name or out.name)
         lock_output(out)
@@ -193,54 +169,19 @@ def job_name(name: str) -> str:
     return name
 
 
-def check_output_dir(out: Path, overwrite: bool) -> None:
-    """Refuse an `--out` that is a file, or a non-empty directory unless `overwrite` (a job's own lock
-    file does not count)."""
-    from aniformer.files import LOCK_NAME
+def resolve_device(name: str):
+    """The torch device of a `--device` flag (`auto`: CUDA when there is one); `UserError` if unusable."""
+    import torch  # only the jobs that run a model pay for it
 
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out} exists and is not a directory")
-    if out.is_dir() and any(p.name != LOCK_NAME for p in out.iterdir()) and not overwrite:
-        raise UserError(f"--out {out} exists and is not empty; pass --overwrite to replace it")
-
-
-@contextlib.contextmanager
-def staged_output_dir(out: Path, overwrite: bool) -> Iterator[Path]:
-    """Yield a temporary directory beside `out`; when the block succeeds it replaces `out`.
-
-    A failure (or Ctrl-C) leaves `out` as it was and removes the partial directory; what a killed
-    job left beside `out` is removed first (`files.clean_stale_staging`). When this process holds the
-    lock on `out` (`files.lock_output`), the new directory is locked too before it takes `out`'s place,
-    and the two are exchanged atomically, so no other job can slip in between.
-    """
-    from aniformer import files
-
-    check_output_dir(out, overwrite)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    files.clean_stale_staging(out)
-    tmp = files.staging_dir(out)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the results are an ordinary directory
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
-        yield tmp
-        check_output_dir(out, overwrite)  # still true after a long job?
-        lock = files.held_lock(out)
-        if lock is not None and lock.directory == Path(os.path.abspath(out)):
-            lock.add(tmp)  # the new `out` is locked as it appears
-        if out.exists() and files.swap_dirs(tmp, out):
-            shutil.rmtree(tmp, ignore_errors=True)  # now the old `out`
-            return
-        old = None
-        if out.exists():
-            old = out.with_name(f".{out.name}.old-{os.getpid()}")
-            os.replace(out, old)
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+        device = torch.device(name)
+    except RuntimeError:
+        raise UserError(f"--device {name!r}: not a torch device") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"--device {name}: CUDA is not available on this machine")
+    return device
 
 
 _terminated = False
@@ -271,8 +212,6 @@ def run(main: Callable[[list[str]], Any], argv: list[str] | None = None) -> None
     Output locks the job took (`files.lock_output`) are released as it ends."""
     import errno
     import signal
-
-    from aniformer.files import release_locks
 
     global _terminated
     _terminated = False

@@ -8,8 +8,10 @@ and staging directories that a crash does not leave behind. No Ray, no MLflow.
   (``--overwrite`` replaces ``--out`` as a whole: it must never delete what the job reads).
 - ``claim_output(out, overwrite, inputs)``: both, plus ``check_output_dir``: what a job calls once;
   ``@releases_locks`` on the job's ``main`` releases the lock when ``main`` ends however it is called.
-- ``staging_dir``/``clean_stale_staging``/``swap_dirs``: the pieces of ``cli.staged_output_dir``.
+- ``staging_dir``/``clean_stale_staging``/``swap_dirs``: the pieces of ``staged_output_dir``.
 - ``exclusive(path)``: a short critical section between processes (the first creation of a store).
+- ``atomic_path(path)``: write under a temporary name, renamed into place only when the block succeeds.
+- ``staged_output_dir(out, overwrite)``: a whole output directory that appears complete or not at all.
 - ``natural_key(name)``: the one order of frame and clip files (``frame_2`` before ``frame_10``, case-blind).
 """
 
@@ -34,10 +36,12 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
+from aniformer.errors import UserError
+
 LOCK_NAME = ".lock"
 _HELD: dict[Path, OutputLock] = {}
 _AT_EXIT = False
-_ATOMIC_TMP = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp$")  # cli.atomic_path's temporary files
+_ATOMIC_TMP = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp$")  # atomic_path's temporary files
 
 
 class OutputLock:
@@ -100,8 +104,6 @@ def _acquire(path: Path, flag: str, directory: Path) -> int:
     """An fd holding an exclusive flock on `path` (created if need be); `UserError` if another open
     file holds it. Lock files are removed on release, so after locking check that `path` is still
     the file we locked (a releasing holder may have just unlinked it), else try again."""
-    from aniformer.cli import UserError
-
     while True:
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
@@ -127,10 +129,8 @@ def _acquire(path: Path, flag: str, directory: Path) -> int:
 
 def lock_output(out: str | os.PathLike, flag: str = "--out") -> OutputLock:
     """Lock output directory `out` (created if missing) for this process; the same lock again if this
-    process holds it already. Stale temporary files of `cli.atomic_path` in `out` are removed (none
+    process holds it already. Stale temporary files of `atomic_path` in `out` are removed (none
     can be in use: the lock is ours)."""
-    from aniformer.cli import UserError
-
     out = Path(os.path.abspath(os.path.expanduser(out)))
     if out in _HELD:
         return _HELD[out]
@@ -194,8 +194,6 @@ def protect_inputs(out: str | os.PathLike, inputs: Mapping[str, str | os.PathLik
     """`UserError` if `out` is, contains, or lies inside one of `inputs` ({flag: path or list of paths}; None and
     paths that do not exist, such as an MLflow run id, are skipped; a glob stands for the files it
     matches). Paths are compared after resolving symlinks, so a link cannot hide an input inside `out`."""
-    from aniformer.cli import UserError
-
     target = Path(os.path.expanduser(out)).resolve()
     given = []
     flat = [(flag, v) for flag, value in inputs.items() for v in (value if isinstance(value, (list, tuple)) else [value])]
@@ -222,8 +220,6 @@ def claim_output(out: str | os.PathLike, overwrite: bool,
                  inputs: Mapping[str, str | os.PathLike | None | list] = ()) -> OutputLock:
     """What a job does with its `--out` before any work: refuse one that is, holds or lies inside an
     input, lock it (one job per output), then refuse a non-empty one unless `overwrite`."""
-    from aniformer.cli import check_output_dir
-
     protect_inputs(out, dict(inputs))
     fresh = Path(os.path.abspath(os.path.expanduser(out))) not in _HELD
     lock = lock_output(out)
@@ -315,3 +311,67 @@ def exclusive(path: str | os.PathLike) -> Iterator[None]:
 def natural_key(name: str) -> list:
     """Sort key that orders frame_2 before frame_10, ignoring case."""
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside `path`; rename it into place only if the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; give the mode a plain open() would
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def check_output_dir(out: Path, overwrite: bool) -> None:
+    """Refuse an `--out` that is a file, or a non-empty directory unless `overwrite` (a job's own lock
+    file does not count)."""
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} exists and is not a directory")
+    if out.is_dir() and any(p.name != LOCK_NAME for p in out.iterdir()) and not overwrite:
+        raise UserError(f"--out {out} exists and is not empty; pass --overwrite to replace it")
+
+
+@contextlib.contextmanager
+def staged_output_dir(out: Path, overwrite: bool) -> Iterator[Path]:
+    """Yield a temporary directory beside `out`; when the block succeeds it replaces `out`.
+
+    A failure (or Ctrl-C) leaves `out` as it was and removes the partial directory; what a killed
+    job left beside `out` is removed first (`clean_stale_staging`). When this process holds the
+    lock on `out` (`lock_output`), the new directory is locked too before it takes `out`'s place,
+    and the two are exchanged atomically, so no other job can slip in between.
+    """
+    check_output_dir(out, overwrite)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale_staging(out)
+    tmp = staging_dir(out)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the results are an ordinary directory
+    try:
+        yield tmp
+        check_output_dir(out, overwrite)  # still true after a long job?
+        lock = held_lock(out)
+        if lock is not None and lock.directory == Path(os.path.abspath(out)):
+            lock.add(tmp)  # the new `out` is locked as it appears
+        if out.exists() and swap_dirs(tmp, out):
+            shutil.rmtree(tmp, ignore_errors=True)  # now the old `out`
+            return
+        old = None
+        if out.exists():
+            old = out.with_name(f".{out.name}.old-{os.getpid()}")
+            os.replace(out, old)
+        os.replace(tmp, out)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)

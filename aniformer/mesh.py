@@ -15,16 +15,13 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from aniformer.cli import UserError, atomic_path
+from aniformer.errors import MeshError
+from aniformer.files import atomic_path
 
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
 DEFAULT_MAX_VERTICES = 2_000_000
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per file unit
 MAX_COORDINATE = 1e3  # metres; beyond this a mesh is in another unit or broken (the model saturates)
-
-
-class MeshError(UserError):
-    """A mesh file or array that cannot be used, with the reason in one line."""
 
 
 def validate_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh",

@@ -30,7 +30,6 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 # (label, model config, V, batch, precision[, activation checkpointing]): activations of tens to
 # hundreds of MB on CPU.

@@ -34,13 +34,11 @@ import subprocess
 import sys
 import time
 from contextlib import contextmanager
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from aniformer import AniFormer, AniFormerConfig  # noqa: E402
-from aniformer.model import ATTENTION_KERNELS, attention_kernels  # noqa: E402
+from aniformer import AniFormer, AniFormerConfig
+from aniformer.model import ATTENTION_KERNELS, attention_kernels
 
 IMPLEMENTATIONS = ("ours", "ours-compiled", "dense-fp32", "dense-tf32")
 

@@ -15,11 +15,10 @@ import shutil
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from aniformer.animate import driving_files, load_driving, write_obj  # noqa: E402
-from aniformer.mesh import load_mesh  # noqa: E402
-from aniformer.registration import closest_points  # noqa: E402
-from aniformer.synth.variants import remesh  # noqa: E402
+from aniformer.animate import driving_files, load_driving, write_obj
+from aniformer.mesh import load_mesh
+from aniformer.registration import closest_points
+from aniformer.synth.variants import remesh
 
 
 def main(samples: str, out: str, driving: str | None = None) -> None:

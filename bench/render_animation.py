@@ -18,11 +18,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from aniformer.animate import driving_files, load_driving  # noqa: E402
-from aniformer.mesh import center_bbox, load_mesh  # noqa: E402
-from aniformer.metrics import PMD_SCALE, pmd  # noqa: E402
-from aniformer.render import render_filmstrip  # noqa: E402
+from aniformer.animate import driving_files, load_driving
+from aniformer.mesh import center_bbox, load_mesh
+from aniformer.metrics import PMD_SCALE, pmd
+from aniformer.render import render_filmstrip
 
 
 def main(samples: str, animation: str, png: str) -> None:

@@ -12,19 +12,16 @@ from __future__ import annotations
 
 import argparse
 import functools
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from aniformer.animate import animate_sequence  # noqa: E402
-from aniformer.checkpoint import model_from_checkpoint  # noqa: E402
-from aniformer.metrics import PMD_SCALE, pmd  # noqa: E402
-from aniformer.render import render_filmstrip  # noqa: E402
-from aniformer.synth.stream import TEST_SPLITS, StreamPairs  # noqa: E402
+from aniformer.animate import animate_sequence
+from aniformer.checkpoint import model_from_checkpoint
+from aniformer.metrics import PMD_SCALE, pmd
+from aniformer.render import render_filmstrip
+from aniformer.synth.stream import TEST_SPLITS, StreamPairs
 
 
 def main() -> None:

@@ -15,15 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from aniformer.synth.stream import StreamPairs  # noqa: E402
+from aniformer.synth.stream import StreamPairs
 
 
 def bench_process(stream: StreamPairs, pairs: int) -> float:

@@ -14,15 +14,12 @@ Without RAY_ADDRESS a local Ray instance is started.
 from __future__ import annotations
 
 import json
-import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from aniformer.cli import RunJobParser, UserError, exit_on_sigterm, run  # noqa: E402
-from aniformer.files import releases_locks  # noqa: E402
+from aniformer.cli import RunJobParser, exit_on_sigterm, run
+from aniformer.errors import UserError
+from aniformer.files import releases_locks
 
 
 def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: str, parent_run_id: str,
@@ -121,8 +118,8 @@ def main(argv: list[str]) -> None:
                         "(they are scored on the same pairs)")
     out, name, bank = RunJobParser.locations(args)
 
-    from aniformer.cli import atomic_path
     from aniformer.evaluate import table_csv, table_markdown
+    from aniformer.files import atomic_path
     from aniformer.memory import parameter_count
     from pipeline.ablation import log_pmd_table, slug
     from pipeline.cluster import connect
@@ -171,5 +168,10 @@ def main(argv: list[str]) -> None:
     print(f"  compare the variants: {ui_hint(parent.uri)}")
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The ``aniformer-ablate`` command: `main` with one-line errors and exit codes."""
     run(main)
+
+
+if __name__ == "__main__":
+    cli()

@@ -38,15 +38,12 @@ import tempfile
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from aniformer.animate import FPS_SIDECARS, FRAMES_PER_MESH, MAX_GLB_BYTES, MAX_MORPH_TARGETS  # noqa: E402
-from aniformer.cli import ArgumentParser, UserError, run, staged_output_dir  # noqa: E402
-from aniformer.files import claim_output, releases_locks  # noqa: E402
-from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS  # noqa: E402
-from jobs.evaluate import resolve_device  # noqa: E402
-from pipeline.registry import resolve_checkpoint  # noqa: E402
+from aniformer.animate import FPS_SIDECARS, FRAMES_PER_MESH, MAX_GLB_BYTES, MAX_MORPH_TARGETS
+from aniformer.cli import ArgumentParser, resolve_device, run
+from aniformer.errors import UserError
+from aniformer.files import claim_output, releases_locks, staged_output_dir
+from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS
+from pipeline.registry import resolve_checkpoint
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -85,6 +82,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help="frames drawn in preview.gif, evenly spaced (default 60; 0 = no preview)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: cuda if available)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing non-empty --out")
+    p.add_argument("--force", action="store_true", help="animate even when the estimated time is over 2 h")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p.parse_args(argv)
 
@@ -101,9 +99,8 @@ def _anny_topology(vertices, faces) -> str | None:
     return None
 
 
-@releases_locks
-def main(argv: list[str]) -> None:
-    args = parse_args(argv)
+def check_flags(args: argparse.Namespace) -> None:
+    """The numeric flags' ranges, before anything is loaded."""
     for flag, value, low in (("--batch-size", args.batch_size, 1), ("--max-vertices", args.max_vertices, 3),
                              ("--max-frames", args.max_frames, 1), ("--preview-frames", args.preview_frames, 0),
                              ("--frames-per-mesh", args.frames_per_mesh, 1)):
@@ -114,6 +111,97 @@ def main(argv: list[str]) -> None:
                         f"{MAX_MORPH_TARGETS:,} morph targets per mesh")
     if args.fps is not None and not 0 < args.fps < float("inf"):
         raise UserError(f"--fps must be a positive number, got {args.fps}")
+
+
+def load_inputs(args):
+    """(driving frame files, target vertices and faces, fps, name), all checked before any work (and before
+    anything is written): frame count, the target mesh, the size the GLB would have."""
+    from aniformer.animate import driving_files, driving_fps, glb_size
+    from aniformer.mesh import load_mesh
+
+    files = driving_files(args.driving)
+    if len(files) > args.max_frames:
+        raise UserError(f"--driving {args.driving}: {len(files):,} frames exceeds --max-frames {args.max_frames:,}")
+    target, target_faces = load_mesh(args.target, max_vertices=args.max_vertices, unit=args.unit)
+    fps = args.fps or driving_fps(files) or 30.0
+    name = args.name or f"{Path(args.target).stem}_{files[0].parent.name}"
+    size = glb_size(len(files), len(target), len(target_faces), args.frames_per_mesh)
+    if size > MAX_GLB_BYTES and not args.no_glb:
+        raise UserError(f"animation.glb would be {size / 2**30:.1f} GiB ({len(files):,} frames x {len(target):,} "
+                        "vertices); glTF clients load at most 2 GiB: cut the clip, or --no-glb for the OBJs only")
+    return files, target, target_faces, fps, name
+
+
+def model_inputs(args, state: dict, config, driving, driving_faces, target, target_faces):
+    """(faces, driving, target) on the topology the model runs on, and the registrations that carry meshes of
+    other topologies there (`aniformer.registration.Correspondence`, by role); none for an absolute-output model."""
+    import numpy as np
+
+    registrations = {}
+    if getattr(config, "output", "absolute") == "absolute":  # no vertex correspondence needed
+        return target_faces, driving, target, registrations
+    from aniformer.registration import Correspondence
+    from aniformer.synth.bodies import TOPOLOGIES, BodyModel
+
+    trained = (state["config"].get("data") or {}).get("topology")
+    topology = args.template or _anny_topology(driving[0], driving_faces) or trained
+    if topology not in TOPOLOGIES:
+        raise UserError(f"--template must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
+    template = BodyModel(topology)
+    faces = template.faces
+    for role, vertices, mesh_faces in (("driver", driving[0], driving_faces), ("target", target, target_faces)):
+        if not np.array_equal(mesh_faces, faces):  # another vertex count, order or connectivity
+            began = time.perf_counter()
+            registrations[role] = Correspondence(vertices, mesh_faces, topology)
+            fit = registrations[role]
+            print(f"registered the {role} ({len(vertices):,} vertices) onto Anny {topology} ({template.num_vertices:,} "
+                  f"vertices): {fit.rms * 1000:.1f} mm RMS surface distance, {time.perf_counter() - began:.1f} s",
+                  file=sys.stderr)
+            if fit.rms > 0.05:
+                print(f"warning: the {role} fits Anny's body poorly ({fit.rms * 1000:.0f} mm RMS): is it a "
+                      "human, upright and z up in --unit?", file=sys.stderr)
+    model_driving = registrations["driver"].to_template(driving) if "driver" in registrations else driving
+    model_target = registrations["target"].template if "target" in registrations else target
+    return faces, model_driving, model_target, registrations
+
+
+def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local, translation, target_faces) -> None:
+    """frames/*.obj, animation.glb, preview.gif and animation.json, staged: `out` appears complete or not at all."""
+    from tqdm import tqdm
+
+    from aniformer.animate import write_glb, write_obj
+    from aniformer.mesh import center_bbox
+
+    written = time.perf_counter()
+    world = local if translation is None else local + translation[:, None]
+    fps, name = summary["fps"], summary["name"]
+    with staged_output_dir(out, args.overwrite) as tmp:
+        digits = max(4, len(str(len(local) - 1)))
+        (tmp / "frames").mkdir()
+        for k, vertices in enumerate(tqdm(world / UNITS[args.unit], unit="obj", desc="write OBJ",
+                                          disable=args.no_progress, file=sys.stderr)):
+            write_obj(tmp / "frames" / f"frame_{k:0{digits}d}.obj", vertices, target_faces)
+        if not args.no_glb:
+            write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
+                      frames_per_mesh=args.frames_per_mesh,
+                      extras={"checkpoint": str(args.checkpoint), "driving": str(args.driving)})
+        if args.preview_frames:
+            from aniformer.render import render_animation_gif
+
+            shown = center_bbox(driving) if args.center else driving
+            with tqdm(total=min(args.preview_frames, len(local)), unit="frame", desc="preview",
+                      disable=args.no_progress, file=sys.stderr) as bar:
+                render_animation_gif([("driver", shown, driving_faces), ("result", world, target_faces)],
+                                     tmp / "preview.gif", fps=fps, max_frames=args.preview_frames,
+                                     progress=bar.update)
+        summary["seconds"]["write"] = round(time.perf_counter() - written, 3)
+        (tmp / "animation.json").write_text(json.dumps(summary, indent=2) + "\n")
+
+
+@releases_locks
+def main(argv: list[str]) -> None:
+    args = parse_args(argv)
+    check_flags(args)
     out = Path(args.out).expanduser().resolve()
     from aniformer.checkpoint import checkpoint_spec  # torch: after the arguments are checked
 
@@ -127,30 +215,14 @@ def main(argv: list[str]) -> None:
 
     from aniformer.animate import (
         animate_sequence,
-        driving_files,
-        driving_fps,
-        glb_size,
         load_driving,
         num_windows,
         root_motion,
-        write_glb,
-        write_obj,
     )
     from aniformer.checkpoint import model_from_checkpoint
-    from aniformer.mesh import load_mesh
 
     start = time.perf_counter()
-    # Inputs first, all of them, so that bad input fails before any work (and nothing is written).
-    files = driving_files(args.driving)
-    if len(files) > args.max_frames:
-        raise UserError(f"--driving {args.driving}: {len(files):,} frames exceeds --max-frames {args.max_frames:,}")
-    target, target_faces = load_mesh(args.target, max_vertices=args.max_vertices, unit=args.unit)
-    fps = args.fps or driving_fps(files) or 30.0
-    name = args.name or f"{Path(args.target).stem}_{files[0].parent.name}"
-    size = glb_size(len(files), len(target), len(target_faces), args.frames_per_mesh)
-    if size > MAX_GLB_BYTES and not args.no_glb:
-        raise UserError(f"animation.glb would be {size / 2**30:.1f} GiB ({len(files):,} frames x {len(target):,} "
-                        "vertices); glTF clients load at most 2 GiB: cut the clip, or --no-glb for the OBJs only")
+    files, target, target_faces, fps, name = load_inputs(args)  # bad input fails before any work
     with tempfile.TemporaryDirectory(prefix="aniformer-animate-") as scratch:
         model, state = model_from_checkpoint(resolve_checkpoint(checkpoint, Path(scratch)))
     config = model.config
@@ -159,32 +231,8 @@ def main(argv: list[str]) -> None:
         driving, driving_faces = load_driving(files, args.max_vertices, args.unit, progress=bar.update)
     loaded = time.perf_counter()
 
-    registrations = {}
-    if getattr(config, "output", "absolute") != "absolute":  # the model needs vertex correspondence
-        from aniformer.registration import Correspondence
-        from aniformer.synth.bodies import TOPOLOGIES, BodyModel
-
-        trained = (state["config"].get("data") or {}).get("topology")
-        topology = args.template or _anny_topology(driving[0], driving_faces) or trained
-        if topology not in TOPOLOGIES:
-            raise UserError(f"--template must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
-        template = BodyModel(topology)
-        faces = template.faces
-        for role, vertices, mesh_faces in (("driver", driving[0], driving_faces), ("target", target, target_faces)):
-            if not np.array_equal(mesh_faces, faces):  # another vertex count, order or connectivity
-                began = time.perf_counter()
-                registrations[role] = Correspondence(vertices, mesh_faces, topology)
-                fit = registrations[role]
-                print(f"registered the {role} ({len(vertices):,} vertices) onto Anny {topology} ({template.num_vertices:,} "
-                      f"vertices): {fit.rms * 1000:.1f} mm RMS surface distance, {time.perf_counter() - began:.1f} s",
-                      file=sys.stderr)
-                if fit.rms > 0.05:
-                    print(f"warning: the {role} fits Anny's body poorly ({fit.rms * 1000:.0f} mm RMS): is it a "
-                          "human, upright and z up in --unit?", file=sys.stderr)
-        model_driving = registrations["driver"].to_template(driving) if "driver" in registrations else driving
-        model_target = registrations["target"].template if "target" in registrations else target
-    else:
-        faces, model_driving, model_target = target_faces, driving, target
+    faces, model_driving, model_target, registrations = model_inputs(args, state, config, driving, driving_faces,
+                                                                      target, target_faces)
     model = functools.partial(model.to(device), faces=torch.from_numpy(np.asarray(faces, np.int64)).to(device))
     outputs = config.output_frames()
     combine = args.combine if outputs == slice(None) else "center"
@@ -192,7 +240,7 @@ def main(argv: list[str]) -> None:
     with tqdm(total=total, unit="window", desc="animate", disable=args.no_progress, file=sys.stderr) as bar:
         result = animate_sequence(model, model_driving, model_target, window=config.window, outputs=outputs,
                                   combine=combine, center=input_center, batch_size=args.batch_size, device=device,
-                                  progress=bar.update)
+                                  progress=bar.update, force=args.force)
     if "target" in registrations:
         result = registrations["target"].from_template(result)
     inferred = time.perf_counter()
@@ -202,40 +250,19 @@ def main(argv: list[str]) -> None:
 
     local = center_bbox(result)
     translation = None if args.center else root_motion(driving, local, target)
-    world = local if translation is None else local + translation[:, None]
 
-    with staged_output_dir(out, args.overwrite) as tmp:
-        digits = max(4, len(str(len(result) - 1)))
-        (tmp / "frames").mkdir()
-        for k, vertices in enumerate(tqdm(world / UNITS[args.unit], unit="obj", desc="write OBJ",
-                                          disable=args.no_progress, file=sys.stderr)):
-            write_obj(tmp / "frames" / f"frame_{k:0{digits}d}.obj", vertices, target_faces)
-        if not args.no_glb:
-            write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
-                      frames_per_mesh=args.frames_per_mesh,
-                      extras={"checkpoint": str(args.checkpoint), "driving": str(args.driving)})
-        if args.preview_frames:
-            from aniformer.render import render_animation_gif
-
-            shown = center_bbox(driving) if args.center else driving
-            with tqdm(total=min(args.preview_frames, len(result)), unit="frame", desc="preview",
-                      disable=args.no_progress, file=sys.stderr) as bar:
-                render_animation_gif([("driver", shown, driving_faces), ("result", world, target_faces)],
-                                     tmp / "preview.gif", fps=fps, max_frames=args.preview_frames,
-                                     progress=bar.update)
-        summary = {
-            "checkpoint": str(args.checkpoint), "target": str(args.target), "driving": str(args.driving),
-            "name": name, "frames": len(result), "fps": fps, "unit": args.unit,
-            "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
-            "window": config.window, "combine": combine, "windows": total, "input_center": input_center,
-            "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template)}
-                           for role, fit in registrations.items()},
-            "output_centred": args.center,
-            "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
-            "seconds": {"load": round(loaded - start, 3), "inference": round(inferred - loaded, 3),
-                        "write": round(time.perf_counter() - inferred, 3)},
-        }
-        (tmp / "animation.json").write_text(json.dumps(summary, indent=2) + "\n")
+    summary = {
+        "checkpoint": str(args.checkpoint), "target": str(args.target), "driving": str(args.driving),
+        "name": name, "frames": len(result), "fps": fps, "unit": args.unit,
+        "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
+        "window": config.window, "combine": combine, "windows": total, "input_center": input_center,
+        "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template)}
+                       for role, fit in registrations.items()},
+        "output_centred": args.center,
+        "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
+        "seconds": {"load": round(loaded - start, 3), "inference": round(inferred - loaded, 3)},
+    }
+    write_outputs(out, args, summary, driving, driving_faces, local, translation, target_faces)
     seconds = time.perf_counter() - start
     print(f"animated {len(result)} frames ({target.shape[0]:,}-vertex target, {driving.shape[1]:,}-vertex driver, "
           f"T={config.window}, {total} windows, combine={combine}) in {seconds:.1f} s "
@@ -247,5 +274,10 @@ def main(argv: list[str]) -> None:
         print(f"preview: {out / 'preview.gif'}")
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The ``aniformer-animate`` command: `main` with one-line errors and exit codes."""
     run(main)
+
+
+if __name__ == "__main__":
+    cli()

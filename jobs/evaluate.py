@@ -29,13 +29,11 @@ import tempfile
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from aniformer.cli import ArgumentParser, UserError, run, staged_output_dir  # noqa: E402
-from aniformer.files import claim_output, releases_locks  # noqa: E402
-from pipeline.registry import resolve_checkpoint  # noqa: E402
-from pipeline.tracking import RUN_ID, quiet_mlflow  # noqa: E402
+from aniformer.cli import ArgumentParser, resolve_device, run
+from aniformer.errors import UserError
+from aniformer.files import claim_output, releases_locks, staged_output_dir
+from pipeline.registry import resolve_checkpoint
+from pipeline.tracking import RUN_ID, quiet_mlflow
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -75,20 +73,6 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 # --------------------------------------------------------------------------------------------
 
 
-def resolve_device(name: str):
-    import torch
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise UserError(f"--device {name!r}: not a torch device") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"--device {name}: CUDA is not available on this machine")
-    return device
-
-
 def _model_label(state: dict, model) -> str:
     name = state["config"].get("model", {}).get("name", "aniformer")
     if name == "npt":
@@ -106,9 +90,8 @@ def _default_name(spec: str) -> str:
     return (path.parent.name if path.is_file() else path.name) or "checkpoint"
 
 
-@releases_locks
-def main(argv: list[str]) -> None:
-    args = parse_args(argv)
+def check_flags(args: argparse.Namespace) -> tuple[list[float] | None, list[tuple[str, str]]]:
+    """(noise levels, --compare NAME=CKPT pairs) from the flags, checked before anything is loaded."""
     if args.pairs is not None and args.pairs < 1:
         raise UserError(f"--pairs must be >= 1, got {args.pairs}")
     if args.batch_size < 1:
@@ -125,42 +108,18 @@ def main(argv: list[str]) -> None:
         if not sep or not label.strip() or not spec:
             raise UserError(f"--compare {item!r} is not of the form NAME=CKPT")
         compare.append((label.strip(), spec))
-    out = Path(args.out).expanduser().resolve()
-    from aniformer.checkpoint import checkpoint_spec  # torch: after the arguments are checked
+    return levels, compare
 
-    checkpoint = checkpoint_spec(args.checkpoint)
-    claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--compare": [checkpoint_spec(spec) for _, spec in compare],
-                                       "--bank": args.bank or Path(checkpoint).expanduser().parent / "bank"})
-    device = resolve_device(args.device)
 
-    from aniformer.checkpoint import model_from_checkpoint
-    from aniformer.evaluate import (
-        Samplers,
-        copy_driver_contender,
-        evaluate_pairs,
-        model_contender,
-        noise_sweep,
-        plot_sweep,
-        static_target_contender,
-        sweep_csv,
-        table_csv,
-        table_markdown,
-        transfer_contender,
-    )
-    start = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="aniformer-eval-") as scratch:
-        ckpt_path = resolve_checkpoint(checkpoint, Path(scratch))
-        model, state = model_from_checkpoint(ckpt_path)
-        others = []
-        for label, spec in compare:
-            other, other_state = model_from_checkpoint(resolve_checkpoint(checkpoint_spec(spec), Path(scratch)))
-            others.append((label, other, other_state, spec))
+def choose_data(args: argparse.Namespace, ckpt_path: Path, config: dict, levels):
+    """(pairs, seed, the data source, the splits to score, the noise split) for a checkpoint's run config:
+    the target variants (--targets), its stream, or a bank."""
+    from pipeline.data import DataConfig
 
-    config = state["config"]
-    data_cfg = config.get("data", {}) or {}
-    pairs = args.pairs or int(data_cfg.get("eval_pairs", 1000))
-    seed = args.seed if args.seed is not None else int(data_cfg.get("seed", 0))
-    center = data_cfg.get("center", "mesh")
+    data_cfg = {**DataConfig().to_dict(), **(config.get("data") or {})}  # the defaults, for fields it lacks
+    pairs = args.pairs or int(data_cfg["eval_pairs"])
+    seed = args.seed if args.seed is not None else int(data_cfg["seed"])
+    center = data_cfg["center"]
     if args.targets is not None:
         source = _target_source(args, data_cfg, center, seed, pairs)
     elif data_cfg.get("source") == "stream" and not args.bank:
@@ -178,7 +137,88 @@ def main(argv: list[str]) -> None:
     noise_split = args.noise_split or ("unseen" if "unseen" in splits else splits[-1])
     if levels is not None and noise_split not in all_splits:
         raise UserError(f"--noise-split {noise_split!r} is not a split of the data ({', '.join(all_splits)})")
+    return pairs, seed, source, splits, noise_split
 
+
+def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, descriptions: dict, notes: list,
+                   data_label: str, *, pairs: int, seed: int, splits: list, shuffle: str, noise_split: str,
+                   seconds: float) -> tuple[str, dict]:
+    """The results as Markdown (mean and SD tables, the noise sweep) and as the results.json record."""
+    from aniformer.evaluate import table_markdown
+
+    notes.append(f"{pairs} pairs per split (seed {seed}, window as each model's, vertex shuffling "
+                 f"'{shuffle}'; copy-driver on the same pairs unshuffled). Checkpoint: {args.checkpoint} "
+                 f"(epoch {state.get('epoch')}); data: {data_label}.")
+    markdown = table_markdown(table, splits, descriptions, notes=notes)
+    markdown += "\n" + table_markdown(spread, splits, title="Standard deviation of PMD over the pairs of each split")
+    if sweep is not None:
+        markdown += (f"\n**PMD (×10⁻⁴) vs uniform driver noise (± m), split `{noise_split}`**\n\n"
+                     + table_markdown({k: {f"{lv:g}": v for lv, v in row.items()} for k, row in sweep.items()},
+                                      [f"{lv:g}" for lv in levels], title=None)
+                     + "\n![PMD vs noise](noise.png)\n")
+    result = {"checkpoint": args.checkpoint, "data": data_label, "pairs": pairs, "seed": seed,
+              "splits": splits, "table": table, "pair_sd": spread, "seconds": seconds,
+              "noise": None if sweep is None else {"split": noise_split,
+                                                   "pmd": {k: {f"{lv:g}": v for lv, v in row.items()}
+                                                           for k, row in sweep.items()}}}
+
+    return markdown, result
+
+
+def write_results(out: Path, args: argparse.Namespace, markdown: str, result: dict, table: dict, sweep, config: dict,
+                  name: str) -> str | None:
+    """results.md/.csv/.json (and the noise sweep's CSV and plot), staged, and the MLflow run; its id."""
+    from aniformer.evaluate import plot_sweep, sweep_csv, table_csv
+
+    splits, pairs, seed = result["splits"], result["pairs"], result["seed"]
+    with staged_output_dir(out, args.overwrite) as tmp:
+        (tmp / "results.md").write_text(markdown)
+        (tmp / "results.csv").write_text(table_csv(table, splits))
+        (tmp / "results.json").write_text(json.dumps(result, indent=2) + "\n")
+        if sweep is not None:
+            (tmp / "noise.csv").write_text(sweep_csv(sweep))
+            plot_sweep(sweep, tmp / "noise.png", result["noise"]["split"])
+        run_id = None
+        if not args.no_mlflow:
+            run_id = _log_to_mlflow(f"evaluate-{name}", args, tmp, table, sweep, pairs, seed, splits, config)
+
+    return run_id
+
+
+@releases_locks
+def main(argv: list[str]) -> None:
+    args = parse_args(argv)
+    levels, compare = check_flags(args)
+    out = Path(args.out).expanduser().resolve()
+    from aniformer.checkpoint import checkpoint_spec  # torch: after the arguments are checked
+
+    checkpoint = checkpoint_spec(args.checkpoint)
+    claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--compare": [checkpoint_spec(spec) for _, spec in compare],
+                                       "--bank": args.bank or Path(checkpoint).expanduser().parent / "bank"})
+    device = resolve_device(args.device)
+
+    from aniformer.checkpoint import model_from_checkpoint
+    from aniformer.evaluate import (
+        Samplers,
+        copy_driver_contender,
+        evaluate_pairs,
+        model_contender,
+        noise_sweep,
+        static_target_contender,
+        transfer_contender,
+    )
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="aniformer-eval-") as scratch:
+        ckpt_path = resolve_checkpoint(checkpoint, Path(scratch))
+        model, state = model_from_checkpoint(ckpt_path)
+        others = []
+        for label, spec in compare:
+            other, other_state = model_from_checkpoint(resolve_checkpoint(checkpoint_spec(spec), Path(scratch)))
+            others.append((label, other, other_state, spec))
+
+    config = state["config"]
+    pairs, seed, (all_splits, descriptions, shuffle, make_sampler, notes, data_label), splits, noise_split = \
+        choose_data(args, ckpt_path, config, levels)
     name = args.name or _default_name(args.checkpoint)
     rows = [(args.name or _model_label(state, model), model)] + [(label, m) for label, m, _, _ in others]
     baselines = ["copy-driver", "static target", "deformation transfer"]
@@ -215,33 +255,10 @@ def main(argv: list[str]) -> None:
     bar.close()
     seconds = time.perf_counter() - start
 
-    notes.append(f"{pairs} pairs per split (seed {seed}, window as each model's, vertex shuffling "
-                 f"'{shuffle}'; copy-driver on the same pairs unshuffled). Checkpoint: {args.checkpoint} "
-                 f"(epoch {state.get('epoch')}); data: {data_label}.")
-    markdown = table_markdown(table, splits, descriptions, notes=notes)
-    markdown += "\n" + table_markdown(spread, splits, title="Standard deviation of PMD over the pairs of each split")
-    if sweep is not None:
-        markdown += (f"\n**PMD (×10⁻⁴) vs uniform driver noise (± m), split `{noise_split}`**\n\n"
-                     + table_markdown({k: {f"{lv:g}": v for lv, v in row.items()} for k, row in sweep.items()},
-                                      [f"{lv:g}" for lv in levels], title=None)
-                     + "\n![PMD vs noise](noise.png)\n")
-    result = {"checkpoint": args.checkpoint, "data": data_label, "pairs": pairs, "seed": seed,
-              "splits": splits, "table": table, "pair_sd": spread, "seconds": seconds,
-              "noise": None if sweep is None else {"split": noise_split,
-                                                   "pmd": {k: {f"{lv:g}": v for lv, v in row.items()}
-                                                           for k, row in sweep.items()}}}
-
-    with staged_output_dir(out, args.overwrite) as tmp:
-        (tmp / "results.md").write_text(markdown)
-        (tmp / "results.csv").write_text(table_csv(table, splits))
-        (tmp / "results.json").write_text(json.dumps(result, indent=2) + "\n")
-        if sweep is not None:
-            (tmp / "noise.csv").write_text(sweep_csv(sweep))
-            plot_sweep(sweep, tmp / "noise.png", noise_split)
-        run_id = None
-        if not args.no_mlflow:
-            run_id = _log_to_mlflow(f"evaluate-{name}", args, tmp, table, sweep, pairs, seed, splits, config)
-
+    markdown, result = results_report(args, state, table, spread, sweep, levels, descriptions, notes, data_label,
+                                      pairs=pairs, seed=seed, splits=splits, shuffle=shuffle, noise_split=noise_split,
+                                      seconds=seconds)
+    run_id = write_results(out, args, markdown, result, table, sweep, config, name)
     print(markdown.split("\n\n- ")[0].strip())
     print(f"evaluated {len(scores)} models x {len(splits)} splits x {pairs} pairs in {seconds:.1f} s")
     print(f"results: {out / 'results.md'}, {out / 'results.csv'}" + (f", {out / 'noise.png'}" if sweep else ""))
@@ -359,5 +376,10 @@ def _metric_name(label: str) -> str:
     return re.sub(r"[^0-9A-Za-z_\-.]+", "_", label)
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The ``aniformer-evaluate`` command: `main` with one-line errors and exit codes."""
     run(main)
+
+
+if __name__ == "__main__":
+    cli()

@@ -21,14 +21,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script from a checkout
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from aniformer.cli import ArgumentParser, UserError, run, staged_output_dir  # noqa: E402
-from aniformer.files import claim_output, releases_locks  # noqa: E402
+from aniformer.cli import ArgumentParser, run
+from aniformer.errors import UserError
+from aniformer.files import claim_output, releases_locks, staged_output_dir
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -125,5 +122,10 @@ def _export_bank(args, out: Path) -> None:
         "target_pose_from_motion": rest_motion, "frames": len(driving), "vertices": bank.num_vertices})
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The ``aniformer-export-meshes`` command: `main` with one-line errors and exit codes."""
     run(main)
+
+
+if __name__ == "__main__":
+    cli()

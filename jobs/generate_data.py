@@ -17,15 +17,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from aniformer.cli import ArgumentParser, UserError, exit_on_sigterm, load_config, run, staged_output_dir  # noqa: E402
-from aniformer.files import claim_output, releases_locks  # noqa: E402
+from aniformer.cli import ArgumentParser, exit_on_sigterm, load_config, run
+from aniformer.errors import UserError
+from aniformer.files import claim_output, releases_locks, staged_output_dir
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -100,5 +97,10 @@ def main(argv: list[str]) -> None:
     print(f"manifest: {out / data.MANIFEST}")
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The ``aniformer-generate-data`` command: `main` with one-line errors and exit codes."""
     run(main)
+
+
+if __name__ == "__main__":
+    cli()

@@ -15,13 +15,9 @@ only the unfinished ones run. Without RAY_ADDRESS a local Ray instance is starte
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from aniformer.cli import RunJobParser, exit_on_sigterm, load_config, run  # noqa: E402
-from aniformer.files import releases_locks  # noqa: E402
+from aniformer.cli import RunJobParser, exit_on_sigterm, load_config, run
+from aniformer.files import releases_locks
 
 
 @releases_locks  # the --out lock ends with main, however main is called
@@ -40,17 +36,9 @@ def main(argv: list[str]) -> None:
 
     from pipeline.cluster import connect
     from pipeline.data import prepare_bank
-    from pipeline.tracking import Tracker, start_job_run, tracking_uri, ui_hint
-    from pipeline.tune import (
-        best_row,
-        build_tuner,
-        compare_link,
-        end_interrupted_runs,
-        experiment_exists,
-        summarize,
-        unfinished_trials,
-        write_summary,
-    )
+    from pipeline.sweep_table import SweepReporter, best_row, compare_link, record_results, summarize, write_summary
+    from pipeline.tracking import start_job_run, ui_hint
+    from pipeline.tune import build_tuner, end_interrupted_runs, experiment_exists, unfinished_trials
 
     connect()
     exit_on_sigterm()  # after ray.init, which installs its own handler
@@ -64,24 +52,16 @@ def main(argv: list[str]) -> None:
     try:
         print(("restoring" if restore else "starting") + f" sweep {name} in {out / 'tune' / name}", flush=True)
         tuner = build_tuner(base, sweep, sweep_name=name, out=out, bank=bank, experiment=args.experiment,
-                            parent_run_id=parent.run_id, faces=faces, vertices=vertices,
-                            restore=restore)
+                            parent_run_id=parent.run_id, faces=faces, vertices=vertices, restore=restore,
+                            reporter=SweepReporter(base, sweep, sweep_name=name, epochs=spec.train.epochs,
+                                                   vertices=vertices, faces=len(faces)))
         results = tuner.fit()
         unfinished = unfinished_trials(out / "tune" / name, sweep.num_samples)
         rows = summarize(results, sweep, spec.train.epochs)
         summary = write_summary(rows, out / "summary.csv")
         parent.log_artifact(summary)
         end_interrupted_runs(name, unfinished, args.experiment)
-        best = best_row(rows)
-        if best and not unfinished:
-            Tracker(tracking_uri(), best["mlflow_run_id"]).set_tags({"best": "true"})
-            parent.set_tags({"best_trial_id": best["trial_id"], "best_run_id": best["mlflow_run_id"],
-                             "best_pmd_unseen": best["best_pmd_unseen"]})
-            parent.log_metrics({"best_pmd_unseen": best["best_pmd_unseen"]}, step=0)
-        counts = {}
-        for row in rows:
-            counts[row["status"]] = counts.get(row["status"], 0) + 1
-        parent.set_tags({f"trials.{k}": v for k, v in counts.items()})
+        best, counts = best_row(rows), record_results(parent, rows, complete=not unfinished)
         status = "KILLED" if unfinished else "FINISHED"
     except (KeyboardInterrupt, SystemExit):
         status = "KILLED"
@@ -106,5 +86,10 @@ def main(argv: list[str]) -> None:
         sys.exit(1)
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The ``aniformer-sweep`` command: `main` with one-line errors and exit codes."""
     run(main)
+
+
+if __name__ == "__main__":
+    cli()

@@ -17,14 +17,8 @@ and `mlflow.pyfunc.load_model("models:/aniformer/latest")` load it (pipeline/reg
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-if __package__ in (None, ""):  # run as a script from a checkout (or a Ray job's working dir)
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from aniformer.cli import RunJobParser, exit_on_sigterm, load_config, run  # noqa: E402
-from aniformer.files import releases_locks  # noqa: E402
+from aniformer.cli import RunJobParser, exit_on_sigterm, load_config, run
+from aniformer.files import releases_locks
 
 
 @releases_locks  # the --out lock ends with main, however main is called
@@ -57,10 +51,14 @@ def main(argv: list[str]) -> None:
     quiet_mlflow()
     console = Console.for_job(no_progress=args.no_progress, verbose=args.verbose)
     quiet_ray(console.verbose)
-    connect()
+    dashboard = connect()
     exit_on_sigterm()  # after ray.init, which installs its own handler
     _, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
     tracker = start_job_run(name, spec.to_dict(), experiment=args.experiment, out=out)
+    pairs = "made on the fly (data.source: stream)" if spec.data.source == "stream" else f"from the bank {bank}"
+    print(f"run {name}: pairs {pairs}; checkpoints in {out} (best.pt, last.pt; Ray's in {out / 'ray'}); "
+          f"MLflow run {tracker.run_id} in {tracker.uri}" + (f"; Ray dashboard http://{dashboard}" if dashboard else ""),
+          flush=True)
     # `ray job stop` and kill send SIGTERM: `run` makes it exit 143, the run ends KILLED (never RUNNING).
     with tracker.ended():
         result = train_job(spec, bank, out, name, tracker, faces, console)
@@ -74,5 +72,10 @@ def main(argv: list[str]) -> None:
     print(f"  compare runs: {ui_hint(tracker.uri)}")
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The ``aniformer-train`` command: `main` with one-line errors and exit codes."""
     run(main)
+
+
+if __name__ == "__main__":
+    cli()

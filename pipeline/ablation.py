@@ -33,7 +33,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from aniformer.cli import UserError, apply_overrides, from_dict, load_config
+from aniformer.cli import apply_overrides, from_dict, load_config
+from aniformer.errors import UserError
 
 BUDGET = (("train", "epochs"), ("train", "batch_size"), ("data", "pairs_per_epoch"))
 

@@ -31,18 +31,19 @@ def _local_node_only() -> None:
     ray_constants.ENABLE_RAY_CLUSTER = False  # this process imported ray before the variable was set
 
 
-def connect() -> None:
+def connect() -> str | None:
+    """Connect (once per process); returns the Ray dashboard's address, None if already connected or none."""
     if ray.is_initialized():
-        return
+        return None
     address = os.environ.get("RAY_ADDRESS")
     if address:
-        ray.init(address=address, log_to_driver=True)
-        return
+        return ray.init(address=address, log_to_driver=True).dashboard_url or None
     _local_node_only()
-    ray.init(address="local", _node_ip_address=LOCALHOST, include_dashboard=True, dashboard_host=LOCALHOST,
-             log_to_driver=True)
+    context = ray.init(address="local", _node_ip_address=LOCALHOST, include_dashboard=True, dashboard_host=LOCALHOST,
+                       log_to_driver=True)
     node_ip = ray.util.get_node_ip_address()
     if node_ip != LOCALHOST:  # a Ray release that resolves the address another way: never listen outside
         ray.shutdown()
         raise RuntimeError(f"the local Ray instance took node IP {node_ip}, not {LOCALHOST}: it would listen "
                            "beyond this machine")
+    return context.dashboard_url or None

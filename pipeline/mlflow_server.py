@@ -37,10 +37,8 @@ import time
 import urllib.request
 from pathlib import Path
 
-if __package__ in (None, ""):  # python pipeline/mlflow_server.py from a checkout
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from aniformer.cli import ArgumentParser, UserError, run  # noqa: E402
+from aniformer.cli import ArgumentParser, run
+from aniformer.errors import UserError
 
 DB = "mlflow.db"
 WILDCARDS = {"0.0.0.0", "::", ""}

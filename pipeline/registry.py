@@ -32,8 +32,8 @@ from pathlib import Path
 import mlflow.pyfunc
 import numpy as np
 
-from aniformer.cli import UserError
-from pipeline.tracking import Tracker, quiet_mlflow, tracking_uri
+from aniformer.errors import UserError
+from pipeline.tracking import Tracker, existing_store, quiet_mlflow
 from pipeline.tracking import resolve_checkpoint as resolve_run_checkpoint
 
 MODEL_NAME = "model"  # the logged model's name in its run
@@ -167,10 +167,7 @@ def resolve_checkpoint(spec: str, scratch: Path) -> Path:
     import mlflow
     from mlflow.models import Model
 
-    uri = tracking_uri()
-    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).is_file():
-        raise UserError(f"{spec}: there is no tracking store at {uri.removeprefix('sqlite:///')} "
-                        "(set MLFLOW_TRACKING_URI, or run from the directory that holds mlflow.db)")
+    uri = existing_store(spec)
     try:
         with environment(**NO_PROGRESS_BAR):
             local = Path(mlflow.artifacts.download_artifacts(artifact_uri=spec.rstrip("/"), tracking_uri=uri,

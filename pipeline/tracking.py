@@ -36,7 +36,7 @@ from pathlib import Path
 from mlflow.entities import Metric, Param, RunStatus, RunTag
 from mlflow.tracking import MlflowClient
 
-from aniformer.cli import UserError
+from aniformer.errors import UserError
 
 JOB_TAG = "aniformer.job"
 OUT_TAG = "aniformer.out"  # the absolute output directory of the job
@@ -290,6 +290,17 @@ def quiet_mlflow() -> None:
         logging.getLogger(name).setLevel(logging.WARNING)
 
 
+def existing_store(what: str) -> str:
+    """The tracking URI to read ``what`` from: a sqlite store that exists (never created by a lookup) or a
+    server that answers; else `UserError`."""
+    uri = tracking_uri()
+    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).is_file():
+        raise UserError(f"{what}: there is no tracking store at {uri.removeprefix('sqlite:///')} "
+                        "(set MLFLOW_TRACKING_URI, or run from the directory that holds mlflow.db)")
+    require_reachable(uri)
+    return uri
+
+
 def resolve_checkpoint(spec: str, scratch: Path) -> Path:
     """A checkpoint path from a file/directory, or an MLflow run id (downloads checkpoints/best.pt)."""
     path = Path(os.path.expanduser(spec))
@@ -301,11 +312,7 @@ def resolve_checkpoint(spec: str, scratch: Path) -> Path:
     quiet_mlflow()
     import mlflow
 
-    uri = tracking_uri()
-    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).is_file():
-        raise UserError(f"MLflow run {match.group(1)}: there is no tracking store at {uri.removeprefix('sqlite:///')} "
-                        "(set MLFLOW_TRACKING_URI, or run from the directory that holds mlflow.db)")
-    require_reachable(uri)
+    uri = existing_store(f"MLflow run {match.group(1)}")
     try:
         local = mlflow.artifacts.download_artifacts(run_id=match.group(1), artifact_path=CHECKPOINT_ARTIFACT,
                                                     dst_path=str(scratch / match.group(1)), tracking_uri=uri)

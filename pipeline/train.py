@@ -1,11 +1,13 @@
 """Ray Train: distributed data-parallel AniFormer training.
 
 `train_func` is the per-worker loop handed to `ray.train.torch.TorchTrainer` (DDP over gloo on CPU,
-nccl on GPU); `fit` builds the trainer: pair datasets from the bank, scaling, checkpoints (best by
+nccl on GPU), in named steps: `restore`, then per epoch `train_epoch`, `validate_and_checkpoint` (rank 0)
+and `ray.train.report`. `build_trainer` makes the trainer: pair datasets, scaling, checkpoints (best by
 unseen PMD, plus the latest) and failure handling. A job re-created with the same name and storage
-resumes from its latest checkpoint: Ray Train hands it to `train_func` via `get_checkpoint()`.
+resumes from its latest checkpoint (`pipeline.checkpoints`): Ray Train hands it to `train_func` via
+`get_checkpoint()`, and the train dataset starts at that epoch.
 
-One pass over the "train" dataset covers every epoch (pairs of epoch e are seeded by (seed, e));
+One pass over the "train" dataset covers every remaining epoch (pairs of epoch e are seeded by (seed, e));
 each worker takes a fixed number of batches per epoch so that all DDP ranks step in lockstep.
 """
 
@@ -28,11 +30,14 @@ from ray.train import CheckpointConfig, DataConfig, FailureConfig, LoggingConfig
 from ray.train.torch import TorchTrainer
 
 from aniformer.baselines import MODELS, build_model
-from aniformer.checkpoint import FILENAME, load_checkpoint, save_checkpoint, unwrap
-from aniformer.cli import UserError, atomic_path, from_dict
+from aniformer.checkpoint import FILENAME, save_checkpoint, unwrap
+from aniformer.cli import from_dict
+from aniformer.errors import UserError
+from aniformer.files import atomic_path
 from aniformer.losses import LossConfig, loss_terms
 from aniformer.metrics import PMD_SCALE, pmd
 from aniformer.model import ATTENTION_KERNELS, attention_kernels
+from pipeline.checkpoints import SCORE, best_checkpoint, restore_state, resume_epoch
 from pipeline.console import Console, EpochBar, epoch_line, quiet_ray, show
 from pipeline.data import DataConfig as PairDataConfig
 from pipeline.data import data_config, pair_dataset, pair_source, quiet_ray_data
@@ -41,7 +46,6 @@ from pipeline.tracking import Tracker
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
 COMPILE_MODES = ("none", "default", "reduce-overhead", "max-autotune")  # torch.compile's modes; none = eager
 EVAL_SPLITS = ("seen", "unseen")
-SCORE = "pmd_unseen"
 
 
 @dataclass(frozen=True)
@@ -119,12 +123,13 @@ class RunSpec:
                                                      "attention_kernels": list(self.train.attention_kernels)}}
 
 
-def resolve_precision(requested: str, device: torch.device) -> str:
+def resolve_precision(requested: str, device_type: str, bf16_supported: bool) -> str:
+    """``auto``: bf16 on GPUs that have it, fp16 (with a GradScaler) on older ones (V100), fp32 on CPU."""
     if requested != "auto":
         return requested
-    if device.type != "cuda":
+    if device_type != "cuda":
         return "fp32"
-    return "bf16" if torch.cuda.is_bf16_supported() else "fp16"
+    return "bf16" if bf16_supported else "fp16"
 
 
 def peak_memory_gb(device: torch.device) -> float:
@@ -163,10 +168,117 @@ def render_example(example: dict, frames: slice, bank_faces: np.ndarray, path: P
     return render_filmstrip(rows, path, frames=window)
 
 
+@dataclass
+class Training:
+    """What a worker trains with: the model (DDP-wrapped), its optimiser state and precision, and
+    where it stands (``epoch`` done, optimiser ``step``)."""
+
+    model: torch.nn.Module
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.LRScheduler
+    scaler: torch.amp.GradScaler
+    autocast: torch.autocast
+    precision: str
+    device: torch.device
+    frames: slice
+    epoch: int = 0
+    step: int = 0
+
+
+def restore(spec: RunSpec) -> Training:
+    """Build the model and optimiser, restored from Ray Train's checkpoint when there is one (a worker
+    restart, or a re-run job), then wrap the model for DDP and move it to this worker's device."""
+    cfg = spec.train
+    torch.manual_seed(cfg.seed)  # same initial weights on every rank (DDP also broadcasts them)
+    model = build_model(spec.model_name, spec.model.to_dict())
+    model.activation_checkpointing = cfg.activation_checkpointing
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, list(cfg.milestones), cfg.lr_decay)
+    checkpoint = ray.train.get_checkpoint()
+    state = restore_state(checkpoint) if checkpoint else None
+    if state:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        torch.set_rng_state(state["rng"])
+    model = ray.train.torch.prepare_model(model)
+    if cfg.compile != "none":  # compiled around DDP, so that DDP's buckets split the graph (DDPOptimizer)
+        model = torch.compile(model, mode=cfg.compile)
+    device = ray.train.torch.get_device()
+    precision = resolve_precision(cfg.precision, device.type, device.type == "cuda" and torch.cuda.is_bf16_supported())
+    dtype = {"bf16": torch.bfloat16, "fp16": torch.float16}.get(precision)
+    return Training(model, optimizer, scheduler, torch.amp.GradScaler(device.type, enabled=precision == "fp16"),
+                    torch.autocast(device.type, dtype=dtype, enabled=dtype is not None), precision, device,
+                    spec.model.output_frames(), *((state["epoch"], state["step"]) if state else (0, 0)))
+
+
+def train_epoch(run: Training, spec: RunSpec, batches, steps: int, world: int, bar: EpochBar) -> dict:
+    """One epoch of ``steps`` batches on this worker; returns the epoch's metrics (losses averaged over ranks)."""
+    cfg, model = spec.train, run.model
+    sums, waited, started = defaultdict(float), 0.0, time.perf_counter()
+    for i in range(steps):
+        tick = time.perf_counter()
+        batch = next(batches)
+        waited += time.perf_counter() - tick
+        # One worker reads the dataset whole: its epochs and the restored state must agree (DDP ranks read splits).
+        if world == 1 and i == 0 and int(batch["epoch"][0]) != run.epoch:
+            raise RuntimeError(f"epoch {run.epoch + 1} got the pairs of epoch {int(batch['epoch'][0]) + 1}")
+        driving, target = batch["driving"], batch["target"]
+        update = (i + 1) % cfg.grad_accumulation == 0 or i + 1 == steps
+        # DDP all-reduces gradients on every backward unless told not to: only on update steps.
+        with nullcontext() if update or world == 1 else model.no_sync():
+            with run.autocast, attention_kernels(cfg.attention_kernels):
+                pred = model(driving, target, batch["target_faces"])
+            terms = loss_terms(pred.float(), batch["ground_truth"][:, run.frames], driving[:, run.frames], target,
+                               batch["target_faces"], spec.loss)
+            run.scaler.scale(terms["total"] / cfg.grad_accumulation).backward()
+        if update:
+            run.scaler.step(run.optimizer)
+            run.scaler.update()
+            run.optimizer.zero_grad(set_to_none=True)
+            run.step += 1
+        for name, value in terms.items():
+            sums[name] += value.detach()
+        bar.step(lambda total=sums["total"], n=i + 1: total.item() / n)  # read only when the bar redraws
+    bar.close()
+    run.scheduler.step()
+    run.epoch += 1
+    elapsed = time.perf_counter() - started
+    losses = torch.stack([sums[k] for k in ("total", "rec", "motion", "appearance")]) / steps
+    if torch.distributed.is_initialized():  # average the epoch's losses over ranks
+        torch.distributed.all_reduce(losses)
+        losses /= world
+    return {"epoch": run.epoch, "step": run.step, "loss": losses[0].item(), "loss_rec": losses[1].item(),
+            "loss_motion": losses[2].item(), "loss_appearance": losses[3].item(),
+            "lr": run.scheduler.get_last_lr()[0], "samples_per_s": steps * cfg.batch_size * world / elapsed,
+            "data_wait_fraction": waited / elapsed, "peak_memory_gb": peak_memory_gb(run.device)}
+
+
+def validate_and_checkpoint(run: Training, spec: RunSpec, metrics: dict, directory: Path, tracker: Tracker | None,
+                            faces: np.ndarray) -> ray.train.Checkpoint:
+    """Rank 0: PMD on the evaluation splits into ``metrics``, the checkpoint written to ``directory``, the
+    metrics (and every ``render_every`` epochs a filmstrip) logged to the run."""
+    cfg, example = spec.train, None
+    for split in EVAL_SPLITS:
+        shard = ray.train.get_dataset_shard(split).iter_torch_batches(batch_size=16, device=run.device)
+        with attention_kernels(cfg.attention_kernels):  # eager whatever `compile` says: other shapes
+            metrics[f"pmd_{split}"], first = evaluate_split(unwrap(run.model), shard, run.frames, run.device,
+                                                            run.autocast)
+        example = example if split == "seen" and example else first
+    save_checkpoint(directory / FILENAME, config=spec.to_dict(), model=run.model, optimizer=run.optimizer,
+                    scheduler=run.scheduler, epoch=run.epoch, step=run.step)
+    if tracker:
+        tracker.log_metrics(metrics, step=run.epoch)
+        if example is not None and (run.epoch % cfg.render_every == 0 or run.epoch == cfg.epochs):
+            tracker.log_artifact(render_example(example, run.frames, faces, directory / f"epoch_{run.epoch:04d}.png"),
+                                 "filmstrips")
+    return ray.train.Checkpoint.from_directory(directory)
+
+
 def train_func(loop_config: dict) -> None:
-    """The per-worker training loop (see the module docstring)."""
+    """The per-worker training loop: restore, then per epoch train, validate and checkpoint (rank 0), report."""
     spec = RunSpec.from_config(loop_config["config"])
-    cfg, loss_cfg = spec.train, spec.loss
+    cfg = spec.train
     tracker: Tracker | None = loop_config.get("tracker")
     console = Console(**loop_config["console"]) if loop_config.get("console") else None
     quiet_ray(verbose=console is None or console.verbose)
@@ -174,128 +286,32 @@ def train_func(loop_config: dict) -> None:
     rank, world = context.get_world_rank(), context.get_world_size()
     if not cfg.use_gpu:
         torch.set_num_threads(math.ceil(cfg.cpus_per_worker))
-
-    torch.manual_seed(cfg.seed)  # same initial weights on every rank (DDP also broadcasts them)
-    model = build_model(spec.model_name, spec.model.to_dict())
-    model.activation_checkpointing = cfg.activation_checkpointing
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, list(cfg.milestones), cfg.lr_decay)
-    start_epoch, step = 0, 0
-    checkpoint = ray.train.get_checkpoint()
-    state = restore_state(checkpoint) if checkpoint else None
-    if state:
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        start_epoch, step = state["epoch"], state["step"]
-        torch.set_rng_state(state["rng"])
-    model = ray.train.torch.prepare_model(model)
-    if cfg.compile != "none":  # compiled around DDP, so that DDP's buckets split the graph (DDPOptimizer)
-        model = torch.compile(model, mode=cfg.compile)
-    device = ray.train.torch.get_device()
-    precision = resolve_precision(cfg.precision, device)
-    dtype = {"bf16": torch.bfloat16, "fp16": torch.float16}.get(precision)
-    autocast = torch.autocast(device.type, dtype=dtype, enabled=dtype is not None)
-    scaler = torch.amp.GradScaler(device.type, enabled=precision == "fp16")
-    frames = spec.model.output_frames()
-
-    steps_per_epoch = max(1, spec.data.pairs_per_epoch // (cfg.batch_size * world))
+    run = restore(spec)
+    first_epoch = loop_config.get("first_epoch", 0)  # the train dataset's first epoch (the driver's resume point)
+    if run.epoch < first_epoch:
+        raise RuntimeError(f"restored epoch {run.epoch}, but the train dataset starts at epoch {first_epoch}")
+    steps = max(1, spec.data.pairs_per_epoch // (cfg.batch_size * world))
     batches = iter(ray.train.get_dataset_shard("train").iter_torch_batches(
-        batch_size=cfg.batch_size, drop_last=True, device=device, prefetch_batches=2))
-    for _ in range(start_epoch * steps_per_epoch):  # resumed: skip the epochs the checkpoint already has
+        batch_size=cfg.batch_size, drop_last=True, device=run.device, prefetch_batches=2))
+    for _ in range((run.epoch - first_epoch) * steps):  # a worker restart: skip the epochs since the dataset's start
         next(batches)
     if tracker and rank == 0:
-        tracker.set_tags({"precision": precision, "device": str(device), "world_size": world})
-        if start_epoch:  # a restore (worker failure or a re-run job) is visible in the run's history
-            tracker.log_metrics({"resumed_from_epoch": start_epoch}, step=start_epoch)
-
-    for epoch in range(start_epoch, cfg.epochs):
-        sums, waited, started = defaultdict(float), 0.0, time.perf_counter()
-        bar = EpochBar(bool(console and console.progress and rank == 0), epoch + 1, cfg.epochs, steps_per_epoch,
+        tracker.set_tags({"precision": run.precision, "device": str(run.device), "world_size": world})
+        if run.epoch:  # a restore (worker failure or a re-run job) is visible in the run's history
+            tracker.log_metrics({"resumed_from_epoch": run.epoch}, step=run.epoch)
+    while run.epoch < cfg.epochs:
+        started = time.perf_counter()
+        bar = EpochBar(bool(console and console.progress and rank == 0), run.epoch + 1, cfg.epochs, steps,
                        cfg.batch_size * world)
-        for i in range(steps_per_epoch):
-            tick = time.perf_counter()
-            batch = next(batches)
-            waited += time.perf_counter() - tick
-            driving, target = batch["driving"], batch["target"]
-            update = (i + 1) % cfg.grad_accumulation == 0 or i + 1 == steps_per_epoch
-            # DDP all-reduces gradients on every backward unless told not to: only on update steps.
-            with nullcontext() if update or world == 1 else model.no_sync():
-                with autocast, attention_kernels(cfg.attention_kernels):
-                    pred = model(driving, target, batch["target_faces"])
-                terms = loss_terms(pred.float(), batch["ground_truth"][:, frames], driving[:, frames], target,
-                                   batch["target_faces"], loss_cfg)
-                scaler.scale(terms["total"] / cfg.grad_accumulation).backward()
-            if update:
-                scaler.step(optimizer)
-                scaler.update()
-                optimizer.zero_grad(set_to_none=True)
-                step += 1
-            for name, value in terms.items():
-                sums[name] += value.detach()
-            bar.step(lambda total=sums["total"], n=i + 1: total.item() / n)  # read only when the bar redraws
-        bar.close()
-        scheduler.step()
-        elapsed = time.perf_counter() - started
-        losses = torch.stack([sums[k] for k in ("total", "rec", "motion", "appearance")]) / steps_per_epoch
-        if torch.distributed.is_initialized():  # average the epoch's losses over ranks
-            torch.distributed.all_reduce(losses)
-            losses /= world
-        metrics = {"epoch": epoch + 1, "step": step, "loss": losses[0].item(), "loss_rec": losses[1].item(),
-                   "loss_motion": losses[2].item(), "loss_appearance": losses[3].item(),
-                   "lr": scheduler.get_last_lr()[0],
-                   "samples_per_s": steps_per_epoch * cfg.batch_size * world / elapsed,
-                   "data_wait_fraction": waited / elapsed, "peak_memory_gb": peak_memory_gb(device)}
+        metrics = train_epoch(run, spec, batches, steps, world, bar)
         with tempfile.TemporaryDirectory() as directory:
-            report_checkpoint = None
+            checkpoint = None
             if rank == 0:
-                example = None
-                for split in EVAL_SPLITS:
-                    shard = ray.train.get_dataset_shard(split).iter_torch_batches(batch_size=16, device=device)
-                    with attention_kernels(cfg.attention_kernels):  # eager whatever `compile` says: other shapes
-                        metrics[f"pmd_{split}"], first = evaluate_split(unwrap(model), shard, frames, device,
-                                                                        autocast)
-                    example = example if split == "seen" and example else first
-                save_checkpoint(Path(directory) / FILENAME, config=spec.to_dict(), model=model,
-                                optimizer=optimizer, scheduler=scheduler, epoch=epoch + 1, step=step)
-                report_checkpoint = ray.train.Checkpoint.from_directory(directory)
-                if tracker:
-                    tracker.log_metrics(metrics, step=epoch + 1)
-                    last = epoch + 1 == cfg.epochs
-                    if example is not None and ((epoch + 1) % cfg.render_every == 0 or last):
-                        png = render_example(example, frames, np.asarray(loop_config["faces"]),
-                                             Path(directory) / f"epoch_{epoch + 1:04d}.png")
-                        tracker.log_artifact(png, "filmstrips")
+                checkpoint = validate_and_checkpoint(run, spec, metrics, Path(directory), tracker,
+                                                     loop_config["faces"])
                 if console and console.epoch_lines:
                     show(epoch_line(metrics, cfg.epochs, time.perf_counter() - started))
-            ray.train.report(metrics, checkpoint=report_checkpoint)
-
-
-def restore_state(checkpoint: ray.train.Checkpoint) -> dict | None:
-    """The state to resume from: Ray's latest checkpoint, or, if that one is unreadable (truncated by
-    a crash or a full disk), the newest intact checkpoint beside it; None (start afresh, said in the
-    log) if none is intact."""
-    with checkpoint.as_directory() as directory:
-        try:
-            return load_checkpoint(directory)
-        except UserError as e:
-            problem = str(e)
-    import pyarrow.fs
-
-    if not isinstance(checkpoint.filesystem, pyarrow.fs.LocalFileSystem):
-        raise UserError(f"cannot resume: {problem}")
-    latest = Path(checkpoint.path)
-    for candidate in sorted(latest.parent.glob("checkpoint_*"), reverse=True):  # names sort by time
-        if candidate != latest and candidate.is_dir():
-            try:
-                state = load_checkpoint(candidate)
-            except UserError:
-                continue
-            print(f"resume: {problem}; resuming from the newest intact checkpoint, {candidate.name} "
-                  f"(epoch {state['epoch']})", flush=True)
-            return state
-    print(f"resume: {problem}, and no other checkpoint of {latest.parent} is intact: starting afresh", flush=True)
-    return None
+            ray.train.report(metrics, checkpoint=checkpoint)
 
 
 def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
@@ -309,7 +325,8 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
     cfg = spec.train
     quiet_ray_data()  # before the trainer: it captures the DataContext for its workers
     source = pair_source(spec.data, bank_dir)  # one bank load for every dataset
-    datasets = {"train": pair_dataset(source, "train", epochs=cfg.epochs)}
+    first_epoch = min(resume_epoch(storage / name), cfg.epochs - 1)  # a finished run's re-run trains nothing
+    datasets = {"train": pair_dataset(source, "train", epochs=cfg.epochs - first_epoch, first_epoch=first_epoch)}
     for split in EVAL_SPLITS:
         datasets[split] = pair_dataset(source, split)
     # Blocks in the order of their pair ids: the same config and seed give the same batches, so the
@@ -321,7 +338,7 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
                               verbose_progress=current.verbose_progress)
     return TorchTrainer(
         loop,
-        train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": faces.tolist(),
+        train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": faces, "first_epoch": first_epoch,
                            "console": console.to_dict() if console else None, **(loop_config or {})},
         scaling_config=ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
                                      resources_per_worker={"CPU": cfg.cpus_per_worker},
@@ -378,11 +395,6 @@ def training_failure(error: BaseException) -> str:
     text = " ".join(str(cause).split()) if str(cause).strip() else ""
     detail = text if isinstance(cause, UserError) else f"{type(cause).__name__}" + (f": {text}" if text else "")
     return f"training failed{where}: {detail[:300]} (logs: {ray_logs()})"
-
-
-def best_checkpoint(result: ray.train.Result) -> ray.train.Checkpoint:
-    scored = [(m[SCORE], c) for c, m in (result.best_checkpoints or []) if math.isfinite(m.get(SCORE, math.nan))]
-    return min(scored, key=lambda x: x[0])[1] if scored else result.checkpoint
 
 
 def train_job(spec: RunSpec, bank_dir: Path, out: Path, name: str, tracker: Tracker,

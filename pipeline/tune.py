@@ -26,22 +26,28 @@ TorchTrainer resumes from its last checkpoint under `OUT/trials/<sweep>-<trial_i
 
 from __future__ import annotations
 
-import csv
+import copy
 import dataclasses
-import json
 import math
 import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from ray.tune import Callback, CLIReporter
+import ray
+import ray.train
+from ray import tune
+from ray.tune import Callback, CLIReporter, ExperimentAnalysis
 from ray.tune.integration.ray_train import TuneReportCallback
+from ray.tune.schedulers import ASHAScheduler
+from ray.tune.search.basic_variant import BasicVariantGenerator
+from ray.util.placement_group import PlacementGroup, placement_group_table, remove_placement_group
 
-from aniformer.cli import UserError, from_dict
+from aniformer.cli import from_dict
+from aniformer.errors import UserError
 from aniformer.memory import plan_batch
-from pipeline.tracking import find_job_run, tracking_uri
+from pipeline.tracking import find_job_run, start_job_run, tracking_uri
+from pipeline.train import RunSpec, build_trainer, resolve_precision, train_func
 
 STATUSES = ("ok", "adjusted_memory", "skipped_memory", "early_stopped", "failed")
 SEARCHES = ("optuna", "random")
@@ -126,8 +132,6 @@ def split_config(config: dict) -> tuple[dict, SweepConfig]:
 
 
 def search_space(sweep: SweepConfig) -> dict:
-    from ray import tune
-
     space = {name: tune.loguniform(*getattr(sweep, name)) for name in ("rec", "motion", "appearance")}
     space["window"] = tune.randint(sweep.window[0], sweep.window[1] + 1)  # upper bound exclusive
     if sweep.lr:
@@ -159,8 +163,6 @@ def complete_points(sweep: SweepConfig, base_batch: int) -> list[dict]:
 
 def apply_params(config: dict, params: dict) -> dict:
     """The run config of one trial: `config` with the sampled parameters set (a deep copy)."""
-    import copy
-
     config = copy.deepcopy(config)
     for name, value in params.items():
         if name not in PARAMS:
@@ -177,7 +179,8 @@ def gate(spec, vertices: int, faces: int | None, sweep: SweepConfig):
     """The memory decision (`aniformer.memory.BatchPlan`) for one trial's RunSpec."""
     cfg = spec.train
     device = "cuda" if cfg.use_gpu else "cpu"
-    precision = cfg.precision if cfg.precision != "auto" else ("bf16" if cfg.use_gpu else "fp32")
+    # The driver cannot see the workers' GPUs; bf16 and fp16 take the same memory.
+    precision = resolve_precision(cfg.precision, device, bf16_supported=True)
     plan = plan_batch(spec.model_name, spec.model, vertices=vertices, batch=cfg.batch_size,
                       grad_accumulation=cfg.grad_accumulation, limit_gb=sweep.memory_limit_gb,
                       precision=precision, device=device, workers=cfg.workers, faces=faces,
@@ -190,8 +193,6 @@ def gate(spec, vertices: int, faces: int | None, sweep: SweepConfig):
 def plan_trial(base: dict, params: dict, vertices: int, faces: int | None, sweep: SweepConfig):
     """(the RunSpec a trial asks for, its memory decision): what `run_trial` decides before building
     anything, and what the live table shows for a trial that has not reported yet."""
-    from pipeline.train import RunSpec
-
     requested = RunSpec.from_config(apply_params(base, params))
     return requested, gate(requested, vertices, faces, sweep)
 
@@ -230,10 +231,6 @@ def sweep_train_func(loop_config: dict) -> None:
     machine (the dev/CI machines), so the group leaks and the next trial waits for its CPUs forever.
     The sweep driver removes the recorded group when the trial ends (`release_placement_group`).
     """
-    import ray.train
-
-    from pipeline.train import train_func
-
     path = loop_config.get("placement_group_file")
     group = ray.util.get_current_placement_group()
     if path and group is not None and ray.train.get_context().get_world_rank() == 0:
@@ -244,8 +241,6 @@ def sweep_train_func(loop_config: dict) -> None:
 
 def release_placement_group(path: Path) -> bool:
     """Remove the placement group recorded in `path` if it still exists; True if one was removed."""
-    import ray
-    from ray.util.placement_group import PlacementGroup, placement_group_table, remove_placement_group
 
     if not path.is_file():
         return False
@@ -257,15 +252,11 @@ def release_placement_group(path: Path) -> bool:
 
 
 def run_trial(params: dict, *, base: dict, sweep: dict, sweep_name: str, bank: str, storage: str,
-              experiment: str, parent_run_id: str, faces: list, vertices: int, mlflow_uri: str) -> None:
+              experiment: str, parent_run_id: str, faces: np.ndarray, vertices: int, mlflow_uri: str) -> None:
     """The function trainable: gate, open the trial's MLflow child run, train (or report the skip)."""
-    from ray import tune
-
     # The driver's store, not one resolved in this actor (another env and cwd: Tune's trial dir).
     os.environ["MLFLOW_TRACKING_URI"] = mlflow_uri
 
-    from pipeline.tracking import start_job_run
-    from pipeline.train import RunSpec, build_trainer
 
     sweep_cfg = from_dict(SweepConfig, sweep, "sweep")
     trial_id = tune.get_context().get_trial_id()
@@ -286,7 +277,7 @@ def run_trial(params: dict, *, base: dict, sweep: dict, sweep_name: str, bank: s
         tune.report({**extra, "epoch": 0, sweep_cfg.metric: math.nan})
         tracker.end("KILLED")
         return
-    trainer = build_trainer(spec, Path(bank), Path(storage), name, tracker, np.asarray(faces), loop=sweep_train_func,
+    trainer = build_trainer(spec, Path(bank), Path(storage), name, tracker, faces, loop=sweep_train_func,
                             loop_config={"placement_group_file": str(Path(storage) / name / PLACEMENT_GROUP_FILE)},
                             callbacks=[TrialReport(extra)])
     result = trainer.fit()  # the driver-side SweepRuns callback ends the MLflow run with the final status
@@ -311,6 +302,12 @@ MLFLOW_STATUS = {"ok": "FINISHED", "adjusted_memory": "FINISHED", "early_stopped
                  "skipped_memory": "KILLED", "failed": "FAILED"}
 
 
+def last_result(trial) -> dict:
+    """A trial's last result without `Trial.last_result`'s ray.get of a starting actor's defaults."""
+    meta = getattr(trial, "run_metadata", None)
+    return dict(meta.last_result if meta is not None else trial.last_result or {})
+
+
 def comparison_metrics(trial, metric: str) -> dict:
     """What a trial's child run gets when the trial ends, for the compare view (one value per run):
     `best_<metric>` (its minimum over the epochs: the last epoch's `pmd_unseen` is not the trial's
@@ -319,7 +316,7 @@ def comparison_metrics(trial, metric: str) -> dict:
     best = (getattr(trial, "metric_analysis", None) or {}).get(metric, {}).get("min")
     if best is not None and math.isfinite(best):
         values[f"best_{metric}"] = float(best)
-    predicted = _last_result(trial).get("predicted_memory_gb")
+    predicted = last_result(trial).get("predicted_memory_gb")
     if predicted is not None and math.isfinite(predicted):
         values["predicted_memory_gb"] = float(predicted)
     return values
@@ -362,22 +359,18 @@ class SweepRuns(Callback):
 
 
 def build_tuner(base: dict, sweep: SweepConfig, *, sweep_name: str, out: Path, bank: Path, experiment: str,
-                parent_run_id: str, faces: np.ndarray, vertices: int, restore: bool):
-    """A new Tuner for the sweep, or the interrupted one restored from `out/tune/<sweep_name>`."""
-    from ray import tune
-    from ray.tune.schedulers import ASHAScheduler
-    from ray.tune.search.basic_variant import BasicVariantGenerator
-
-    from pipeline.train import RunSpec
+                parent_run_id: str, faces: np.ndarray, vertices: int, restore: bool, reporter: CLIReporter):
+    """A new Tuner for the sweep, or the interrupted one restored from `out/tune/<sweep_name>`; `reporter`
+    draws the console's trial table (`pipeline.sweep_table.SweepReporter`)."""
 
     spec = RunSpec.from_config(base)
     trainable = tune.with_resources(
         tune.with_parameters(run_trial, base=base, sweep=sweep.to_dict(), sweep_name=sweep_name, bank=str(bank),
                              storage=str(out / "trials"), experiment=experiment, parent_run_id=parent_run_id,
-                             faces=np.asarray(faces).tolist(), vertices=int(vertices), mlflow_uri=tracking_uri()),
+                             faces=np.asarray(faces), vertices=int(vertices), mlflow_uri=tracking_uri()),
         {"CPU": sweep.trial_cpus})
     path = out / "tune" / sweep_name
-    # The sweep's own trial table (SweepReporter). Ray 2.60's default console ("new output",
+    # The sweep's own trial table (`reporter`). Ray 2.60's default console ("new output",
     # RAY_AIR_NEW_OUTPUT=1) ignores a RunConfig's progress_reporter; the reporter protocol is
     # honoured with the new output off. Read by Tuner.fit in this process only.
     os.environ["RAY_AIR_NEW_OUTPUT"] = "0"
@@ -401,245 +394,20 @@ def build_tuner(base: dict, sweep: SweepConfig, *, sweep_name: str, out: Path, b
                                   callbacks=[SweepRuns(spec.train.epochs, sweep_name, str(out / "trials"), experiment,
                                                        sweep.metric)],
                                   failure_config=tune.FailureConfig(max_failures=0),
-                                  progress_reporter=SweepReporter(base, sweep, sweep_name=sweep_name,
-                                                                  epochs=spec.train.epochs, vertices=int(vertices),
-                                                                  faces=len(faces)),
+                                  progress_reporter=reporter,
                                   verbose=1),  # legacy verbosity 1: the reporter's table, no per-result dumps
     )
 
 
 def experiment_exists(out: Path, sweep_name: str) -> bool:
-    from ray import tune
-
     path = out / "tune" / sweep_name
     return path.is_dir() and tune.Tuner.can_restore(str(path))
-
-
-def summarize(results, sweep: SweepConfig, epochs: int) -> list[dict]:
-    """One row per trial (SUMMARY_FIELDS), in trial-id order."""
-    trials = results._experiment_analysis.trials  # same order as the results; no public accessor in 2.60
-    return sorted((trial_row(trial, sweep, epochs) for trial in trials), key=lambda r: str(r["trial_id"]))
-
-
-def _last_result(trial) -> dict:
-    """A trial's last result without `Trial.last_result`'s ray.get of a starting actor's defaults."""
-    meta = getattr(trial, "run_metadata", None)
-    return dict(meta.last_result if meta is not None else trial.last_result or {})
-
-
-def trial_row(trial, sweep: SweepConfig, epochs: int, planned: dict | None = None) -> dict:
-    """The SUMMARY_FIELDS row of a Tune trial. A trial still pending or running has status `pending`
-    or `running` (`paused`, ...: Tune's own, lower-cased); `planned` (its `decision_fields`, what the
-    trial will report) fills the memory columns of a trial that has not reported yet."""
-    metrics = {**(planned or {}), **_last_result(trial)}
-    config = trial.config or {}
-    if trial.status in ("TERMINATED", "ERROR"):
-        status = trial_status(metrics, "error" if trial.status == "ERROR" else None, epochs)
-    else:
-        status = str(trial.status).lower()
-    best = (trial.metric_analysis.get(sweep.metric) or {}).get("min", math.nan)
-    return {
-        "trial_id": trial.trial_id, "status": status, "memory_decision": metrics.get("memory_decision", ""),
-        "rec": config.get("rec"), "motion": config.get("motion"), "appearance": config.get("appearance"),
-        "window": config.get("window"), "lr": config.get("lr", ""),
-        "batch_size": metrics.get("requested_batch_size", config.get("batch_size", "")),
-        "run_batch_size": metrics.get("run_batch_size", "") if status != "skipped_memory" else "",
-        "grad_accumulation": metrics.get("grad_accumulation", ""),
-        "predicted_memory_gb": _round(metrics.get("predicted_memory_gb")),
-        "requested_memory_gb": _round(metrics.get("requested_memory_gb")),
-        "measured_memory_gb": _round(metrics.get("peak_memory_gb")),
-        "memory_limit_gb": sweep.memory_limit_gb if sweep.memory_limit_gb is not None else "",
-        "epochs": int(metrics.get("epoch", 0) or 0), "best_pmd_unseen": _round(best, 4),
-        "mlflow_run_id": metrics.get("mlflow_run_id", ""),
-    }
-
-
-def _round(value, digits: int = 3):
-    if value is None:
-        return ""
-    value = float(value)
-    return round(value, digits) if math.isfinite(value) else ""
-
-
-# The console table's columns: (header, the row's field or a function of the row, right-aligned)
-def _batch(row: dict) -> str:
-    requested, run, accumulation = row["batch_size"], row["run_batch_size"], row["grad_accumulation"]
-    if row["memory_decision"] == "skipped_memory":
-        return f"{requested} (skip)"  # fits in no batch within max_grad_accumulation: never built
-    if run in ("", None) or run == requested:
-        return str(requested)
-    return f"{requested}->{run}x{accumulation}"  # adjusted: micro-batch x accumulation
-
-
-def _fmt(value, spec: str) -> str:
-    if value in ("", None):
-        return ""
-    return format(value, spec) if isinstance(value, (int, float)) else str(value)
-
-
-TABLE_COLUMNS = (
-    ("trial", lambda r, e: str(r["trial_id"]), False),
-    ("status", lambda r, e: r["status"], False),
-    ("rec", lambda r, e: _fmt(r["rec"], ".3g"), True),
-    ("motion", lambda r, e: _fmt(r["motion"], ".3g"), True),
-    ("appearance", lambda r, e: _fmt(r["appearance"], ".3g"), True),
-    ("T", lambda r, e: _fmt(r["window"], "d"), True),
-    ("lr", lambda r, e: _fmt(r["lr"], ".3g"), True),
-    ("batch", lambda r, e: _batch(r), True),
-    ("pred GB", lambda r, e: _fmt(r["requested_memory_gb" if r["memory_decision"] == "skipped_memory"
-                                    else "predicted_memory_gb"], ".2f"), True),
-    ("peak GB", lambda r, e: _fmt(r["measured_memory_gb"], ".2f"), True),
-    ("epoch", lambda r, e: f"{r['epochs']}/{e}" if r["epochs"] or r["status"] == "running" else "", True),
-    ("best PMD", lambda r, e: _fmt(r["best_pmd_unseen"], ".4g"), True),
-)
-
-
-def format_table(rows: list[dict], epochs: int) -> str:
-    """Trial rows (`trial_row`, `summarize`) as a psql-style table, as Tune's CLIReporter draws one:
-    trial, status, the loss weights (rec, motion, appearance), the window T, [lr], the batch
-    (requested->micro-batch x accumulation when the memory gate adjusted it), predicted and measured
-    per-worker GB, epochs done, best validation PMD (unseen, x1e-4). Columns empty in every row are left out."""
-    cells = [[get(row, epochs) for _, get, _ in TABLE_COLUMNS] for row in rows]
-    keep = [i for i, (name, _, _) in enumerate(TABLE_COLUMNS) if name in ("trial", "status") or any(c[i] for c in cells)]
-    headers = [TABLE_COLUMNS[i][0] for i in keep]
-    widths = [max([len(headers[j])] + [len(c[i]) for c in cells]) for j, i in enumerate(keep)]
-
-    def line(values) -> str:
-        out = []
-        for j, (i, value) in enumerate(zip(keep, values)):
-            out.append(value.rjust(widths[j]) if TABLE_COLUMNS[i][2] else value.ljust(widths[j]))
-        return "| " + " | ".join(out) + " |"
-
-    rule = "+-" + "-+-".join("-" * w for w in widths) + "-+"
-    body = [line([c[i] for i in keep]) for c in cells]
-    return "\n".join([rule, line(headers), rule.replace("+", "|", 1)[:-1] + "|", *body, rule])
-
-
-def _counts(rows: list[dict]) -> str:
-    counts: dict[str, int] = {}
-    for row in rows:
-        counts[row["status"]] = counts.get(row["status"], 0) + 1
-    return ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
-
-
-def _duration(seconds: float) -> str:
-    minutes, seconds = divmod(int(seconds), 60)
-    return f"{minutes} min {seconds:02d} s" if minutes else f"{seconds} s"
-
-
-class SweepReporter(CLIReporter):
-    """The sweep's console: Tune's progress-reporter protocol (`should_report`/`report`, driven by
-    Tune's loop like its CLIReporter) with the sweep's own table (`format_table`): a trial's memory
-    decision is predicted here before it reports (the gate `run_trial` applies), statuses are the
-    sweep's (pending, running, then STATUSES), best PMD is the minimum over the trial's epochs
-    (Tune's metric analysis). The table is printed when it changed, at most every `every` seconds
-    (and every `heartbeat` seconds regardless), so that a log (`ray job logs`) is not flooded; the
-    last one, when the sweep ends, is the summary table."""
-
-    def __init__(self, base: dict, sweep: SweepConfig, *, sweep_name: str, epochs: int, vertices: int,
-                 faces: int | None, every: float = 5.0, heartbeat: float = 300.0):
-        super().__init__(max_report_frequency=every)  # metric and mode: from TuneConfig, in setup()
-        self.base, self.sweep, self.sweep_name, self.epochs = base, sweep, sweep_name, epochs
-        self.vertices, self.faces, self.heartbeat = vertices, faces, heartbeat
-        self._planned: dict[str, dict] = {}
-        self._shown: tuple = ()
-        self._last_report_time = 0.0
-        self._started = time.time()
-
-    def setup(self, start_time: float | None = None, total_samples: int | None = None, **kwargs) -> None:
-        super().setup(start_time=start_time, total_samples=total_samples, **kwargs)
-        self._started = start_time or time.time()  # CLIReporter.set_start_time (2.60) drops the value given
-
-    def _plan(self, trial) -> dict:
-        if trial.trial_id not in self._planned:
-            try:
-                requested, plan = plan_trial(self.base, trial.config or {}, self.vertices, self.faces, self.sweep)
-                self._planned[trial.trial_id] = decision_fields(requested, plan, self.sweep)
-            except Exception:  # the trial itself will report the problem
-                self._planned[trial.trial_id] = {}
-        return self._planned[trial.trial_id]
-
-    def rows(self, trials) -> list[dict]:
-        """One per trial, in the order Tune created them (new trials come last)."""
-        return [trial_row(t, self.sweep, self.epochs, self._plan(t)) for t in trials]
-
-    def should_report(self, trials, done: bool = False) -> bool:
-        now = time.time()
-        if done:
-            return True
-        if now - self._last_report_time < self._max_report_freqency:
-            return False
-        state = tuple((r["trial_id"], r["status"], r["epochs"], r["best_pmd_unseen"]) for r in self.rows(trials))
-        return state != self._shown or now - self._last_report_time >= self.heartbeat
-
-    def report(self, trials, done: bool, *sys_info: str) -> None:
-        rows = self.rows(trials)
-        self._shown = tuple((r["trial_id"], r["status"], r["epochs"], r["best_pmd_unseen"]) for r in rows)
-        self._last_report_time = time.time()
-        self._print(self.text(rows, done, *sys_info))
-
-    def text(self, rows: list[dict], done: bool, *sys_info: str) -> str:
-        elapsed = _duration(time.time() - self._started)
-        total = max(self._total_samples or 0, len(rows))
-        if done:
-            head = f"== sweep {self.sweep_name}: {len(rows)} trials ({_counts(rows)}) in {elapsed} =="
-        else:
-            finished = [r for r in rows if r["status"] in STATUSES]
-            head = (f"== sweep {self.sweep_name}: {len(finished)}/{total} trials finished"
-                    + (f" ({_counts(finished)})" if finished else "")
-                    + f", {sum(r['status'] == 'running' for r in rows)} running"
-                    + f", {sum(r['status'] == 'pending' for r in rows)} pending; {elapsed} ==")
-        lines = [head]
-        scored = [r for r in rows if r["best_pmd_unseen"] != "" and r["status"] != "failed"]
-        if scored:
-            best = min(scored, key=lambda r: r["best_pmd_unseen"])
-            lines.append(f"best{'' if done else ' so far'}: trial {best['trial_id']}, "
-                         f"PMD unseen {best['best_pmd_unseen']:.4g} (x1e-4)")
-        lines.append(format_table(rows, self.epochs))
-        return "\n".join(lines) + "\n"
-
-
-def compare_url(ui: str, experiment_id: str, run_ids) -> str:
-    """The MLflow UI's compare view of `run_ids` (parallel coordinates, scatter, box and contour plots
-    over their params and metrics, then their params and metrics side by side) on the UI at `ui`."""
-    from urllib.parse import quote
-
-    runs = quote(json.dumps([str(r) for r in run_ids], separators=(",", ":")))
-    return f"{ui.rstrip('/')}/#/compare-runs?runs={runs}&experiments={quote(json.dumps([str(experiment_id)]))}"
-
-
-def compare_link(parent, rows: list[dict], ui: str | None = None) -> str | None:
-    """The compare view of a sweep's trials that trained (children of the `parent` Tracker, from
-    summary rows), on `ui`, else the tracking server itself (an http store), else `mlflow ui`'s default
-    address. None if no trial trained."""
-    ids = [r["mlflow_run_id"] for r in rows if r["mlflow_run_id"] and r["status"] not in ("skipped_memory", "failed")]
-    if not ids:
-        return None
-    if ui is None:
-        ui = parent.uri if parent.uri.startswith(("http://", "https://")) else "http://127.0.0.1:5000"
-    return compare_url(ui, parent.client.get_run(parent.run_id).info.experiment_id, ids)
-
-
-def write_summary(rows: list[dict], path: Path) -> Path:
-    from aniformer.cli import atomic_path
-
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=SUMMARY_FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    return path
-
-
-def best_row(rows: list[dict]) -> dict | None:
-    ran = [r for r in rows if r["status"] in ("ok", "adjusted_memory", "early_stopped") and r["best_pmd_unseen"] != ""]
-    return min(ran, key=lambda r: r["best_pmd_unseen"]) if ran else None
 
 
 def unfinished_trials(experiment: Path, num_samples: int) -> list[str]:
     """Trial ids an interrupted sweep left to do, from the experiment state Tune saved (what
     `Tuner.restore` will read): trials neither terminated nor errored, plus "(not created)" for each
     sample the search had not produced yet."""
-    from ray.tune import ExperimentAnalysis
 
     trials = ExperimentAnalysis(str(experiment)).trials
     left = [t.trial_id for t in trials if t.status not in ("TERMINATED", "ERROR")]

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from aniformer.cli import UserError
+from aniformer.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
 

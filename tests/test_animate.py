@@ -43,8 +43,9 @@ from aniformer.animate import (
     write_obj,
 )
 from aniformer.checkpoint import save_checkpoint
-from aniformer.cli import UserError, run
-from aniformer.mesh import MeshError, center_bbox
+from aniformer.cli import run
+from aniformer.errors import MeshError, UserError
+from aniformer.mesh import center_bbox
 from aniformer.model import AniFormer, AniFormerConfig
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aniformer.cli import UserError, from_dict, load_config
+from aniformer.cli import from_dict, load_config
+from aniformer.errors import UserError
 from pipeline import data
 
 ROOT = Path(__file__).resolve().parents[1]

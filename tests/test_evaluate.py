@@ -14,7 +14,8 @@ import yaml
 
 from aniformer.baselines import NPT, NPTConfig
 from aniformer.checkpoint import save_checkpoint
-from aniformer.cli import UserError, run
+from aniformer.cli import run
+from aniformer.errors import UserError
 from aniformer.evaluate import (
     Contender,
     Samplers,
@@ -196,7 +197,7 @@ def _bad_eval(kind: str, root: Path, run_dir: Path) -> tuple[list, str]:
         return base, "not a readable checkpoint"
     if kind == "config mismatch":
         state = torch.load(run_dir / "best.pt", weights_only=True)
-        state["config"]["model"]["heads"] = 3
+        state["config"]["model"]["channels"] = [32, 32]  # a valid config, of other shapes than the weights
         torch.save(state, root / "m.pt")
         base[1] = root / "m.pt"
         return base, "does not match"
@@ -259,7 +260,7 @@ def test_evaluate_user_errors_before_any_work(tmp_path):
 def test_export_then_animate_is_the_documented_flow(tiny_run, tmp_path, capsys):
     """jobs/export_meshes.py turns a bank split into OBJ inputs that jobs/animate.py takes as they are."""
     from aniformer.animate import driving_files, load_driving, read_glb
-    from aniformer.cli import UserError
+    from aniformer.errors import UserError
     from aniformer.mesh import load_mesh
     from jobs.animate import main as animate_main
     from jobs.export_meshes import main as export_main

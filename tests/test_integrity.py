@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aniformer.cli import UserError, load_config, run
+from aniformer.cli import load_config, run
+from aniformer.errors import UserError
 from pipeline import data
 from pipeline.data import manifest as bank_manifest
 from pipeline.data import ray_data
@@ -290,8 +291,7 @@ def test_a_job_main_called_directly_releases_its_lock_and_leaves_no_directory(tm
 
 def test_a_staged_output_stays_locked_while_it_replaces_the_old_one(tmp_path, holder):
     """The staging directory is locked before it is swapped in, so no other job gets in between."""
-    from aniformer.cli import staged_output_dir
-    from aniformer.files import claim_output, release_locks
+    from aniformer.files import claim_output, release_locks, staged_output_dir
 
     out = tmp_path / "out"
     out.mkdir()
@@ -313,8 +313,7 @@ def test_a_staged_output_stays_locked_while_it_replaces_the_old_one(tmp_path, ho
 
 
 def test_stale_staging_directories_are_removed_at_the_next_start(tmp_path, holder):
-    from aniformer.cli import staged_output_dir
-    from aniformer.files import claim_output, release_locks
+    from aniformer.files import claim_output, release_locks, staged_output_dir
 
     out = tmp_path / "out"
     dead = subprocess.run([PY, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)

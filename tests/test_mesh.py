@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from aniformer.mesh import MeshError, center_bbox, load_mesh, save_mesh, shuffle_vertices, validate_mesh
+from aniformer.errors import MeshError
+from aniformer.mesh import center_bbox, load_mesh, save_mesh, shuffle_vertices, validate_mesh
 
 
 @pytest.fixture

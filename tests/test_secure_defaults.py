@@ -18,7 +18,7 @@ import trimesh
 import yaml
 
 from aniformer.checkpoint import KEYS, load_checkpoint, save_checkpoint
-from aniformer.cli import UserError
+from aniformer.errors import UserError
 from aniformer.model import AniFormer, AniFormerConfig
 
 ROOT = Path(__file__).resolve().parents[1]

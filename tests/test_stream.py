@@ -113,7 +113,7 @@ def test_residual_model_starts_at_copy_driver_and_needs_one_topology():
 
 
 def test_stream_config_rejects_shuffling_and_unknown_splits(stream):
-    from aniformer.cli import UserError
+    from aniformer.errors import UserError
     from pipeline.data import DataConfig
 
     with pytest.raises(ValueError, match="shuffle must be none"):

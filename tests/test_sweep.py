@@ -19,7 +19,8 @@ from pathlib import Path
 
 import pytest
 
-from aniformer.cli import UserError, load_config
+from aniformer.cli import load_config
+from aniformer.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs/sweep_tiny.yaml"
@@ -128,7 +129,8 @@ def _trial(i: int, status: str, config: dict, result: dict | None = None, best: 
 
 
 def _reporter(*overrides: str, every: float = 0.0):
-    from pipeline.tune import SweepReporter, split_config
+    from pipeline.sweep_table import SweepReporter
+    from pipeline.tune import split_config
 
     base, sweep = split_config(load_config(CONFIG, list(overrides)))
     reporter = SweepReporter(base, sweep, sweep_name="sw", epochs=2, vertices=369, faces=734, every=every)
@@ -194,8 +196,9 @@ def test_live_table_is_throttled():
 def test_ended_trials_runs_get_their_best_pmd_and_predicted_memory_as_metrics(tmp_path, monkeypatch):
     """The compare view plots metrics: each child run gets best_pmd_unseen (the minimum over its epochs,
     not the last epoch's) and predicted_memory_gb when its trial ends."""
+    from pipeline.sweep_table import compare_link
     from pipeline.tracking import start_job_run
-    from pipeline.tune import SweepRuns, compare_link
+    from pipeline.tune import SweepRuns
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     parent = start_job_run("sw", {})
@@ -374,6 +377,9 @@ def test_mlflow_parent_and_child_runs_are_comparable(sweep_run):
             assert child.data.metrics["predicted_memory_gb"] == pytest.approx(float(row["predicted_memory_gb"]), abs=1e-3)
     best = [c for c in children if c.data.tags.get("best") == "true"]
     assert len(best) == 1 and parent.data.tags["best_run_id"] == best[0].info.run_id
+    lowest = min(float(r["best_pmd_unseen"]) for r in rows.values()
+                 if r["best_pmd_unseen"] and r["status"] in ("ok", "adjusted_memory", "early_stopped"))
+    assert best[0].data.metrics["best_pmd_unseen"] == pytest.approx(lowest, abs=1e-3), "the best trial is not the lowest"
     assert [a.path for a in client.list_artifacts(parent.info.run_id)] == ["summary.csv"]
 
 

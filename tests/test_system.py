@@ -686,11 +686,11 @@ async def _compare_view(tab: Tab, url: str, names: list[str], shot: Path) -> dic
 
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (.ci/run installs Debian's chromium)")
 def test_mlflow_compare_view_shows_the_sweeps_trials_in_a_real_browser(cluster, tmp_path):
-    """The compare view of the sweep's children (the link `pipeline.tune.compare_link` prints), as a user
+    """The compare view of the sweep's children (the link `pipeline.sweep_table.compare_link` prints), as a user
     reaches it: parallel coordinates over lambda_rec, lambda_m, lambda_a, T and pmd_unseen, the scatter of
     each against pmd_unseen; the values drawn are the runs' own. Screenshot: ANIFORMER_KEEP_SCREENSHOT
     (docs/mlflow_ui.png)."""
-    from pipeline.tune import compare_url
+    from pipeline.sweep_table import compare_url
 
     experiment, runs = mlflow_runs(cluster)
     (parent,) = [r for r in runs if r["info"]["run_name"] == "sweep"]

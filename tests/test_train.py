@@ -131,6 +131,8 @@ def test_two_worker_ddp_on_two_nodes_is_tracked_in_mlflow(tmp_path, tiny_bank, r
                 "samples_per_s", "peak_memory_gb"):
         history = logged(client, run, key)
         assert [step for step, _ in history] == [1, 2] and all(math.isfinite(v) for _, v in history), key
+    unseen = logged(client, run, "pmd_unseen")
+    assert state["epoch"] == min(unseen, key=lambda epoch_pmd: epoch_pmd[1])[0], "best.pt is not the lowest unseen PMD"
     artifacts = {a.path for a in client.list_artifacts(run.info.run_id, "filmstrips")}
     assert artifacts == {"filmstrips/epoch_0001.png", "filmstrips/epoch_0002.png"}
     assert [a.path for a in client.list_artifacts(run.info.run_id, "checkpoints")] == ["checkpoints/best.pt"]
@@ -213,31 +215,68 @@ def test_bad_config_exits_2_from_the_shell(tmp_path, repo_root):
     assert not (tmp_path / "x").exists()
 
 
-def test_training_reads_pairs_in_id_order(tmp_path, tiny_bank, repo_root):
-    """build_trainer's ingest preserves block order: the same config and seed give the same batches
-    (and so the same model), however Ray Data's tasks happen to finish."""
-    import json
+def pair_order_recorder():
+    """A training loop that records the (epoch, index) ids of its train batches to ``config["record"]``;
+    made by a function so that cloudpickle ships it by value (workers cannot import tests)."""
+    def record_pair_order(config):
+        import json
 
-    import numpy as np
-    import ray.train
+        import ray.train
 
-    from aniformer.cli import load_config
-    from pipeline.train import RunSpec, build_trainer
-
-    def record_pair_order(config):  # defined here: cloudpickle ships it by value (workers cannot import tests)
         ids = []
         for batch in ray.train.get_dataset_shard("train").iter_torch_batches(batch_size=256):
             ids += (batch["epoch"] * 100_000 + batch["index"]).tolist()
         Path(config["record"]).write_text(json.dumps(ids))
 
+    return record_pair_order
+
+
+def recorded_pair_ids(spec, bank, storage: Path, name: str) -> list[int]:
+    import json
+
+    import numpy as np
+
+    from pipeline.train import build_trainer
+
+    record = storage.parent / f"{name}.ids.json"
+    trainer = build_trainer(spec, bank, storage, name, None, np.zeros((1, 3), np.int64),
+                            loop=pair_order_recorder(), loop_config={"record": str(record)})
+    assert trainer.fit().error is None
+    return json.loads(record.read_text())
+
+
+def test_training_reads_pairs_in_id_order(tmp_path, tiny_bank, repo_root):
+    """build_trainer's ingest preserves block order: the same config and seed give the same batches
+    (and so the same model), however Ray Data's tasks happen to finish."""
+    from aniformer.cli import load_config
+    from pipeline.train import RunSpec
+
     # 2 epochs x 3,000 pairs: several blocks and assembly tasks, which finish in any order
     spec = RunSpec.from_config(load_config(repo_root / "configs/tiny.yaml", ["train.epochs=2", "data.pairs_per_epoch=3000"]))
-    record = tmp_path / "ids.json"
-    trainer = build_trainer(spec, tiny_bank, tmp_path / "ray", "order", None, np.zeros((1, 3), np.int64),
-                            loop=record_pair_order, loop_config={"record": str(record)})
-    assert trainer.fit().error is None
-    ids = json.loads(record.read_text())
+    ids = recorded_pair_ids(spec, tiny_bank, tmp_path / "ray", "order")
     assert ids == [e * 100_000 + i for e in (0, 1) for i in range(3000)]
+
+
+def test_a_resumed_run_reads_only_the_epochs_it_has_not_trained(tmp_path, tiny_bank, repo_root):
+    """A run re-created after a checkpoint at epoch 1: its train dataset starts at epoch 1 (no pairs of
+    epoch 0 are made and skipped), and the real loop trains on from there."""
+    import numpy as np
+
+    from aniformer.cli import load_config
+    from pipeline.checkpoints import resume_epoch
+    from pipeline.train import RunSpec, fit
+
+    tiny = repo_root / "configs/tiny.yaml"
+    storage = tmp_path / "ray"
+    assert resume_epoch(storage / "resume") == 0
+    one = RunSpec.from_config(load_config(tiny, ["train.epochs=1"]))
+    assert fit(one, tiny_bank, storage, "resume", None, np.zeros((1, 3), np.int64)).error is None
+    assert resume_epoch(storage / "resume") == 1
+    two = RunSpec.from_config(load_config(tiny, ["train.epochs=2"]))
+    ids = recorded_pair_ids(two, tiny_bank, storage, "resume")
+    assert ids == [100_000 + i for i in range(two.data.pairs_per_epoch)]
+    result = fit(two, tiny_bank, storage, "resume", None, np.zeros((1, 3), np.int64))
+    assert result.error is None and result.metrics["epoch"] == 2
 
 
 def test_sigterm_exits_143_with_one_line_and_ends_the_run_killed(tmp_path, tiny_bank, ray_address, repo_root):

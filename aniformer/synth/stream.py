@@ -197,7 +197,7 @@ class StreamPairs:
         return self.body.num_vertices
 
     def split(self, name: str) -> StreamSplit:
-        from aniformer.cli import UserError
+        from aniformer.errors import UserError
 
         if name not in SPLITS:
             raise UserError(f"unknown split {name!r}; known: {', '.join(SPLITS)}")

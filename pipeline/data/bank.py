@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aniformer.cli import UserError
+from aniformer.errors import UserError
 from pipeline.data.config import GENERATION_FIELDS, DataConfig
 from pipeline.data.manifest import bank_file, read_manifest
 from pipeline.data.shards import check_digest, read_file, read_shard

@@ -13,12 +13,12 @@ from typing import Any
 
 import numpy as np
 
+from aniformer.animate import CENTER_MODES
 from aniformer.cli import from_dict
 from aniformer.synth.bodies import TOPOLOGIES
 from aniformer.synth.motions import ACTIONS
 
 SHUFFLE_MODES = ("none", "target", "both")
-CENTER_MODES = ("mesh", "window", "none")
 SOURCES = ("bank", "stream")  # pairs from a mesh bank on disk, or made on the fly (aniformer.synth.stream)
 
 #: Pair splits: name -> (motion-instance group, target-identity group, description).

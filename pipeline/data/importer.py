@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from aniformer.cli import UserError
+from aniformer.errors import UserError
 from aniformer.files import natural_key
 from aniformer.mesh import MESH_SUFFIXES, load_mesh
 from pipeline.data.config import check_int, derive_seed

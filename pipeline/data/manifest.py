@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from aniformer.cli import UserError, atomic_path
+from aniformer.errors import UserError
+from aniformer.files import atomic_path
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"

@@ -10,7 +10,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from aniformer.cli import UserError, from_dict
+from aniformer.cli import from_dict
+from aniformer.errors import UserError
 from aniformer.synth.stream import StreamPairs
 from pipeline.data.bank import Bank, check_bank_matches, load_bank
 from pipeline.data.config import CENTER_MODES, SHUFFLE_MODES, DataConfig, check_choice, derive_seed

@@ -11,7 +11,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from aniformer.cli import UserError
+from aniformer.errors import UserError
 from pipeline.data.manifest import SCHEMA_VERSION
 
 
