@@ -27,6 +27,7 @@ def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: s
     """Train each variant that has no finished checkpoint yet; {row name: best.pt}."""
     from aniformer.checkpoint import load_checkpoint
     from pipeline.ablation import slug
+    from pipeline.console import Console
     from pipeline.tracking import start_job_run
     from pipeline.train import train_job
 
@@ -46,7 +47,7 @@ def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: s
                                 parent_run_id=parent_run_id, out=run_dir)
         tracker.set_tags({"ablation.variant": row})
         with tracker.ended():
-            result = train_job(spec, bank, run_dir, f"{name}-{slug(row)}", tracker, faces)
+            result = train_job(spec, bank, run_dir, f"{name}-{slug(row)}", tracker, faces, Console.for_job())
         print(f"[{row}] PMD unseen {result.metrics.get('pmd_unseen', float('nan')):.3f} (x1e-4, validation)", flush=True)
     return best
 
@@ -123,10 +124,12 @@ def main(argv: list[str]) -> None:
     from aniformer.memory import parameter_count
     from pipeline.ablation import log_pmd_table, slug
     from pipeline.cluster import connect
+    from pipeline.console import quiet_ray
     from pipeline.data import prepare_bank
     from pipeline.tracking import quiet_mlflow, start_job_run, ui_hint
 
     quiet_mlflow()
+    quiet_ray()
     connect()
     exit_on_sigterm()  # after ray.init, which installs its own handler
     first = next(iter(specs.values()))

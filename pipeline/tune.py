@@ -46,6 +46,7 @@ from ray.util.placement_group import PlacementGroup, placement_group_table, remo
 from aniformer.cli import from_dict
 from aniformer.errors import UserError
 from aniformer.memory import plan_batch
+from pipeline.console import Console
 from pipeline.tracking import find_job_run, start_job_run, tracking_uri
 from pipeline.train import RunSpec, build_trainer, resolve_precision, train_func
 
@@ -218,6 +219,7 @@ class TrialReport(TuneReportCallback):
 
 
 PLACEMENT_GROUP_FILE = "placement_group.txt"
+TRIAL_CONSOLE = Console(epoch_lines=False)  # the sweep's trial table is the console; Ray Train's INFO dumps off
 
 
 def sweep_train_func(loop_config: dict) -> None:
@@ -279,7 +281,7 @@ def run_trial(params: dict, *, base: dict, sweep: dict, sweep_name: str, bank: s
         return
     trainer = build_trainer(spec, Path(bank), Path(storage), name, tracker, faces, loop=sweep_train_func,
                             loop_config={"placement_group_file": str(Path(storage) / name / PLACEMENT_GROUP_FILE)},
-                            callbacks=[TrialReport(extra)])
+                            callbacks=[TrialReport(extra)], console=TRIAL_CONSOLE)
     result = trainer.fit()  # the driver-side SweepRuns callback ends the MLflow run with the final status
     if result.error:
         raise RuntimeError(f"trial {trial_id} failed: {type(result.error).__name__}: {result.error}")
