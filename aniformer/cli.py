@@ -17,6 +17,7 @@ import copy
 import dataclasses
 import os
 import sys
+import unicodedata
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -162,10 +163,15 @@ class RunJobParser(ArgumentParser):
 
 
 def job_name(name: str) -> str:
-    """A job name (`--name`): it names directories under `--out`, so it must be one plain path
-    component, never `..` or a path that leads elsewhere."""
+    """A job name (`--name`, by default OUT's name): it names directories under `--out`, so it must be
+    one plain path component, never `..` or a path that leads elsewhere. Any printable Unicode is a
+    name (Ray Train is given an ASCII form of it, `pipeline.train.ray_run_name`); control characters
+    and bytes that are not UTF-8 are refused, as they would break one-line messages and MLflow's tags."""
     if not name or name in (".", "..") or "/" in name or "\\" in name or "\0" in name:
         raise UserError(f"--name {name!r}: must be a plain name (no '/', not '.' or '..')")
+    if any(unicodedata.category(char) in ("Cc", "Cs") for char in name):  # Cs: an undecodable byte of a path
+        raise UserError(f"--name {name!r}: control characters and bytes that are not UTF-8 are not allowed; "
+                        "pass another --name")
     return name
 
 

@@ -10,17 +10,26 @@ workers, the dashboard and its agents, the runtime-env agent and the three Prome
 "no cluster" switch is off; `_local_node_only` sets that switch for this process and its children.
 The dashboard and job API run arbitrary code for whoever reaches them, and the exporters answer
 without authentication. tests/test_limits.py lists a local job's listening sockets.
+
+A cluster that cannot be reached is one line (`UserError`), not Ray's traceback. `ray.init` has no
+timeout of its own (ray-project/ray#46863): for an address where nothing answers it retries the GCS
+connection 20 times, about 36 s each. So `connect` first opens a TCP connection to the address Ray
+will dial, with a timeout of `PROBE_SECONDS`; what `ray.init` still raises is caught and shortened.
 """
 
 from __future__ import annotations
 
 import os
+import socket
 
 import ray
+
+from aniformer.errors import UserError
 
 LOCALHOST = "127.0.0.1"
 # Ray's switch for Windows and macOS, where it runs single-node on the loopback address by default.
 SINGLE_NODE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+PROBE_SECONDS = 5.0
 
 
 def _local_node_only() -> None:
@@ -31,16 +40,58 @@ def _local_node_only() -> None:
     ray_constants.ENABLE_RAY_CLUSTER = False  # this process imported ray before the variable was set
 
 
+def _root_line(error: BaseException) -> str:
+    """A Ray error and its innermost cause in one line. Ray puts a whole traceback into its "Failed to
+    connect to GCS" message: the traceback's last line is the exception."""
+    outer = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+    while error.__cause__ is not None:
+        error = error.__cause__
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()] or [type(error).__name__]
+    root = lines[-1] if "Traceback (most recent call last)" in str(error) else lines[0]
+    return outer if root == outer else f"{outer} ({root})"
+
+
+def _probe_cluster(address: str) -> None:
+    """Refuse, in one line and within `PROBE_SECONDS`, a RAY_ADDRESS where nothing listens."""
+    if "://" in address:  # a Ray Client or job server URL: ray.init's own errors are shortened below
+        return
+    from ray._private import services
+
+    try:  # what Ray will dial: "auto" looked up, 127.0.0.1 replaced by the node's address
+        target = services.canonicalize_bootstrap_address(address)
+    except ValueError as error:
+        raise UserError(f"RAY_ADDRESS {address!r}: {error}; expected HOST:PORT of a Ray cluster's head") from None
+    if target is None:  # "local", or "auto" with no cluster recorded: ray.init decides
+        return
+    host, _, port = target.rpartition(":")
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise UserError(f"RAY_ADDRESS {address!r}: the port {port!r} is not a number in 1-65535")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=PROBE_SECONDS).close()
+    except OSError as error:
+        reason = f"no answer in {PROBE_SECONDS:g} s" if isinstance(error, TimeoutError) else error.strerror or error
+        raise UserError(f"RAY_ADDRESS {address}: no Ray cluster answers at {target} ({reason}); start one "
+                        "(ray start --head) or unset RAY_ADDRESS to run on a local Ray") from None
+
+
 def connect() -> str | None:
-    """Connect (once per process); returns the Ray dashboard's address, None if already connected or none."""
+    """Connect (once per process); returns the Ray dashboard's address, None if already connected or none.
+    `UserError` (one line) when the cluster of RAY_ADDRESS cannot be reached or a local one cannot start."""
     if ray.is_initialized():
         return None
     address = os.environ.get("RAY_ADDRESS")
     if address:
-        return ray.init(address=address, log_to_driver=True).dashboard_url or None
+        _probe_cluster(address)
+        try:
+            return ray.init(address=address, log_to_driver=True).dashboard_url or None
+        except (ConnectionError, RuntimeError) as error:
+            raise UserError(f"RAY_ADDRESS {address}: cannot connect to Ray: {_root_line(error)}") from None
     _local_node_only()
-    context = ray.init(address="local", _node_ip_address=LOCALHOST, include_dashboard=True, dashboard_host=LOCALHOST,
-                       log_to_driver=True)
+    try:
+        context = ray.init(address="local", _node_ip_address=LOCALHOST, include_dashboard=True,
+                           dashboard_host=LOCALHOST, log_to_driver=True)
+    except (ConnectionError, RuntimeError) as error:
+        raise UserError(f"a local Ray instance could not start: {_root_line(error)}") from None
     node_ip = ray.util.get_node_ip_address()
     if node_ip != LOCALHOST:  # a Ray release that resolves the address another way: never listen outside
         ray.shutdown()

@@ -13,10 +13,13 @@ each worker takes a fixed number of batches per epoch so that all DDP ranks step
 
 from __future__ import annotations
 
+import hashlib
 import math
+import re
 import resource
 import tempfile
 import time
+import unicodedata
 from collections import defaultdict
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass
@@ -314,18 +317,34 @@ def train_func(loop_config: dict) -> None:
             ray.train.report(metrics, checkpoint=checkpoint)
 
 
+def ray_run_name(name: str) -> str:
+    """Ray Train's name for the run of job `name`, and its directory under the storage path. Ray Train
+    tags its metrics with it and encodes them as ASCII (a non-ASCII name failed the run with a
+    UnicodeEncodeError). A printable ASCII name is kept as it is. Any other gets its ASCII letters and
+    digits plus the first 8 hex digits of the name's SHA-256: the same name gives the same directory
+    in every run, so a rerun resumes, and names differing only outside ASCII stay apart."""
+    if name.isascii() and name.isprintable():
+        return name
+    letters = unicodedata.normalize("NFKD", name).encode("ascii", "ignore").decode()
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "-", letters).strip("-.")
+    digest = hashlib.sha256(name.encode()).hexdigest()[:8]
+    return f"{slug}-{digest}" if slug else digest
+
+
 def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
                   faces: np.ndarray, *, loop=train_func, loop_config: dict | None = None,
                   callbacks: list | None = None, console: Console | None = None) -> TorchTrainer:
     """The TorchTrainer of a run: pair datasets from the bank, scaling, checkpoints (best by unseen
-    PMD, plus the latest) and failure handling. Checkpoints live under `storage/name` and a trainer
-    re-created with the same name resumes from them. `loop`, `loop_config` (merged into the loop's
-    config) and `callbacks` let a sweep trial add its own reporting to the same training. `console`
+    PMD, plus the latest) and failure handling. Checkpoints live under `storage/ray_run_name(name)`
+    (`name` itself when it is ASCII) and a trainer re-created with the same name resumes from them.
+    `loop`, `loop_config` (merged into the loop's config) and `callbacks` let a sweep trial add its
+    own reporting to the same training. `console`
     (a training job's): rank 0's bar and epoch lines, Ray Train's log level; None leaves Ray's output as is."""
     cfg = spec.train
     quiet_ray_data()  # before the trainer: it captures the DataContext for its workers
     source = pair_source(spec.data, bank_dir)  # one bank load for every dataset
-    first_epoch = min(resume_epoch(storage / name), cfg.epochs - 1)  # a finished run's re-run trains nothing
+    run_name = ray_run_name(name)
+    first_epoch = min(resume_epoch(storage / run_name), cfg.epochs - 1)  # a finished run's re-run trains nothing
     datasets = {"train": pair_dataset(source, "train", epochs=cfg.epochs - first_epoch, first_epoch=first_epoch)}
     for split in EVAL_SPLITS:
         datasets[split] = pair_dataset(source, split)
@@ -347,7 +366,7 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
         # One worker reads the whole stream: skip the split coordinator (half a core on a 2-core machine).
         dataset_config=DataConfig(datasets_to_split=["train"] if cfg.workers > 1 else [], execution_options=ingest),
         run_config=RunConfig(
-            name=name,
+            name=run_name,
             storage_path=str(storage),
             callbacks=callbacks,
             checkpoint_config=CheckpointConfig(num_to_keep=cfg.keep_checkpoints, checkpoint_score_attribute=SCORE,
@@ -360,7 +379,7 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
 
 def fit(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
         faces: np.ndarray, console: Console | None = None) -> ray.train.Result:
-    """Train `spec` on the pairs of `bank_dir`; checkpoints under `storage/name` (resumed if present)."""
+    """Train `spec` on the pairs of `bank_dir`; checkpoints under `storage/ray_run_name(name)` (resumed if present)."""
     return build_trainer(spec, bank_dir, storage, name, tracker, faces, console=console).fit()
 
 

@@ -305,3 +305,24 @@ def test_a_jobs_local_ray_listens_on_localhost_only():
     assert report["metrics_port"] in {port for _, port, _ in listeners}  # the node's Prometheus exporter
     outside = [entry for entry in listeners if entry[0] not in ("127.0.0.1", "::ffff:127.0.0.1", "::1")]
     assert not outside, f"listening beyond this machine: {outside}"
+
+
+# ------------------------------------------------------------------------------ a Ray that cannot be reached
+
+@pytest.mark.parametrize(("address", "message"), [
+    ("127.0.0.1:1", "error: RAY_ADDRESS 127.0.0.1:1: no Ray cluster answers at "),
+    ("127.0.0.1:notaport", "error: RAY_ADDRESS '127.0.0.1:notaport': the port 'notaport' is not a number in 1-65535"),
+], ids=["nothing-listens", "bad-port"])
+def test_a_ray_address_that_cannot_be_reached_is_one_line_and_exit_2(tmp_path, address, message):
+    """Before, `ray.init` retried the GCS connection for minutes and ended in a 20-line traceback."""
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, str(ROOT / "jobs/train.py"), "--config", str(TINY), "--out",
+                           str(tmp_path / "out"), "train.epochs=1"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=240, env={**os.environ, "RAY_ADDRESS": address,
+                                                       "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"})
+    elapsed = time.perf_counter() - start
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1 and lines[0].startswith(message), done.stderr[-3000:]
+    assert not done.stdout.strip(), done.stdout[-3000:]
+    assert elapsed < 120, f"{elapsed:.0f} s"  # imports on a loaded machine; the probe itself gives up in 5 s
+    assert not (tmp_path / "out" / ".lock").exists()

@@ -321,3 +321,21 @@ def test_resume_falls_back_to_the_newest_intact_checkpoint(tmp_path, tiny_bank, 
     assert [v for _, v in logged(client, run, "resumed_from_epoch")] == [1.0]
     assert sorted(v for _, v in logged(client, run, "epoch")) == [1.0, 2.0, 2.0, 3.0]
     assert load_checkpoint(out / "last.pt")["epoch"] == 3 and run.info.status == "FINISHED"
+
+
+def test_a_unicode_output_name_trains_and_resumes(tmp_path, tiny_bank, ray_address, repo_root):
+    """A non-ASCII --out, and so job name: MLflow keeps the name, Ray Train is given an ASCII one (it
+    encodes its metric tags as ASCII; the run used to fail with a UnicodeEncodeError), and a rerun
+    finds that same Ray directory and resumes from it."""
+    from pipeline.train import ray_run_name
+
+    out = tmp_path / "ünï cødé"
+    assert "UnicodeEncodeError" not in finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=1"))
+    assert sorted(p.name for p in (out / "ray").iterdir() if p.is_dir()) == [ray_run_name(out.name)]
+    assert ray_run_name(out.name).isascii() and load_checkpoint(out / "best.pt")["epoch"] == 1
+
+    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=2"))
+    client, (run,) = job_runs(out)  # found by the real name
+    assert [v for _, v in logged(client, run, "resumed_from_epoch")] == [1.0]
+    assert sorted(v for _, v in logged(client, run, "epoch")) == [1.0, 2.0]
+    assert load_checkpoint(out / "last.pt")["epoch"] == 2 and run.info.status == "FINISHED"
