@@ -13,8 +13,9 @@ without authentication. tests/test_limits.py lists a local job's listening socke
 
 A cluster that cannot be reached is one line (`UserError`), not Ray's traceback. `ray.init` has no
 timeout of its own (ray-project/ray#46863): for an address where nothing answers it retries the GCS
-connection 20 times, about 41 s each (14 min in all). So `connect` first opens a TCP connection to the address Ray
-will dial, with a timeout of `PROBE_SECONDS`; what `ray.init` still raises is caught and shortened.
+connection 20 times, about 41 s each (14 min in all). So `connect` first opens a TCP connection to
+the address Ray will dial, with a timeout of `PROBE_SECONDS`; what `ray.init` still raises is caught
+and shortened.
 """
 
 from __future__ import annotations
