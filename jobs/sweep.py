@@ -61,7 +61,8 @@ def main(argv: list[str]) -> None:
         summary = write_summary(rows, out / "summary.csv")
         parent.log_artifact(summary)
         end_interrupted_runs(name, unfinished, args.experiment)
-        best, counts = best_row(rows), record_results(parent, rows, complete=not unfinished)
+        best = best_row(rows)
+        counts = record_results(parent, rows, best, complete=not unfinished)
         status = "KILLED" if unfinished else "FINISHED"
     except (KeyboardInterrupt, SystemExit):
         status = "KILLED"

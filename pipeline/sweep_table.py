@@ -229,10 +229,9 @@ def best_row(rows: list[dict]) -> dict | None:
     return min(ran, key=lambda r: r["best_pmd_unseen"]) if ran else None
 
 
-def record_results(parent, rows: list[dict], complete: bool) -> dict[str, int]:
-    """Tag the sweep's parent run with its trial counts and, when the sweep is ``complete``, its best trial
-    (also tagged ``best=true`` on the trial's child run); returns the counts by status."""
-    best = best_row(rows)
+def record_results(parent, rows: list[dict], best: dict | None, complete: bool) -> dict[str, int]:
+    """Tag the sweep's parent run with its trial counts and, when the sweep is ``complete``, its ``best`` trial
+    (`best_row`; also tagged ``best=true`` on the trial's child run); returns the counts by status."""
     if best and complete:
         Tracker(tracking_uri(), best["mlflow_run_id"]).set_tags({"best": "true"})
         parent.set_tags({"best_trial_id": best["trial_id"], "best_run_id": best["mlflow_run_id"],

@@ -44,16 +44,7 @@ def tiny_loaded(tiny_bank) -> data.Bank:
 
 
 def sampler(bank: data.Bank, **kw) -> data.PairSampler:
-    cfg = tiny_cfg()
-    args = dict(
-        window=cfg.window,
-        shuffle=cfg.shuffle,
-        center=cfg.center,
-        seed=cfg.seed,
-        pairs_per_epoch=cfg.pairs_per_epoch,
-        eval_pairs=cfg.eval_pairs,
-    )
-    return data.PairSampler(bank, **dict(args, **kw))
+    return data.PairSampler(bank, **dict(tiny_cfg().pair_settings(), **kw))
 
 
 # ---------------------------------------------------------------------------------------------

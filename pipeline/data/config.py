@@ -52,6 +52,8 @@ GENERATION_FIELDS = (
     "instances_per_action",
     "unseen_instance_fraction",
 )
+# Fields that shape the pairs drawn from a bank.
+PAIR_FIELDS = ("window", "shuffle", "center", "seed", "pairs_per_epoch", "eval_pairs")
 # Fields that do not change any output byte (left out of the manifest).
 EXECUTION_FIELDS = ("workers",)
 
@@ -182,6 +184,10 @@ class DataConfig:
         else:
             raise ValueError(f"heldout_actions must be a list of action names or a count; got {held!r}")
         return actions, heldout
+
+    def pair_settings(self) -> dict:
+        """The fields a pair sampler takes (``PairSampler(bank, **cfg.pair_settings())``)."""
+        return {k: getattr(self, k) for k in PAIR_FIELDS}
 
     def generation_dict(self) -> dict:
         """The fields that shape the bank, as plain JSON values."""

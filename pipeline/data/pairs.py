@@ -106,15 +106,7 @@ class PairSampler:
             cfg = from_dict(DataConfig, {k: v for k, v in made.items() if k in known}, "the bank's config")
         else:
             check_bank_matches(bank.manifest, cfg)
-        return cls(
-            bank,
-            window=cfg.window,
-            shuffle=cfg.shuffle,
-            center=cfg.center,
-            seed=cfg.seed,
-            pairs_per_epoch=cfg.pairs_per_epoch,
-            eval_pairs=cfg.eval_pairs,
-        )
+        return cls(bank, **cfg.pair_settings())
 
     def split(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(motion ids, target identity ids) of a split; `UserError` if unknown or empty."""
