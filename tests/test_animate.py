@@ -27,24 +27,20 @@ import trimesh
 import yaml
 
 from aniformer.animate import (
-    MAX_MORPH_TARGETS,
     animate_sequence,
     driving_files,
     driving_fps,
     load_driving,
-    mesh_chunks,
-    natural_key,
     num_windows,
-    read_glb,
     root_motion,
-    to_gltf_axes,
     window_plan,
-    write_glb,
     write_obj,
 )
 from aniformer.checkpoint import save_checkpoint
 from aniformer.cli import run
 from aniformer.errors import MeshError, UserError
+from aniformer.files import natural_key
+from aniformer.glb import MAX_MORPH_TARGETS, mesh_chunks, read_glb, to_gltf_axes, write_glb
 from aniformer.mesh import center_bbox
 from aniformer.model import AniFormer, AniFormerConfig
 

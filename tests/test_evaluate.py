@@ -259,8 +259,9 @@ def test_evaluate_user_errors_before_any_work(tmp_path):
 @pytest.mark.ray
 def test_export_then_animate_is_the_documented_flow(tiny_run, tmp_path, capsys):
     """jobs/export_meshes.py turns a bank split into OBJ inputs that jobs/animate.py takes as they are."""
-    from aniformer.animate import driving_files, load_driving, read_glb
+    from aniformer.animate import driving_files, load_driving
     from aniformer.errors import UserError
+    from aniformer.glb import read_glb
     from aniformer.mesh import load_mesh
     from jobs.animate import main as animate_main
     from jobs.export_meshes import main as export_main
