@@ -38,10 +38,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from aniformer.animate import FPS_SIDECARS, FRAMES_PER_MESH, MAX_GLB_BYTES, MAX_MORPH_TARGETS
+from aniformer.animate import FPS_SIDECARS
 from aniformer.cli import ArgumentParser, resolve_device, run
 from aniformer.errors import UserError
 from aniformer.files import claim_output, releases_locks, staged_output_dir
+from aniformer.glb import FRAMES_PER_MESH, MAX_GLB_BYTES, MAX_MORPH_TARGETS
 from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS
 from pipeline.registry import resolve_checkpoint
 
@@ -116,7 +117,8 @@ def check_flags(args: argparse.Namespace) -> None:
 def load_inputs(args):
     """(driving frame files, target vertices and faces, fps, name), all checked before any work (and before
     anything is written): frame count, the target mesh, the size the GLB would have."""
-    from aniformer.animate import driving_files, driving_fps, glb_size
+    from aniformer.animate import driving_files, driving_fps
+    from aniformer.glb import glb_size
     from aniformer.mesh import load_mesh
 
     files = driving_files(args.driving)
@@ -169,7 +171,8 @@ def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local,
     """frames/*.obj, animation.glb, preview.gif and animation.json, staged: `out` appears complete or not at all."""
     from tqdm import tqdm
 
-    from aniformer.animate import write_glb, write_obj
+    from aniformer.animate import write_obj
+    from aniformer.glb import write_glb
     from aniformer.mesh import center_bbox
 
     written = time.perf_counter()
