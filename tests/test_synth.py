@@ -10,7 +10,8 @@ import torch
 
 from aniformer.render import render_filmstrip
 from aniformer.synth.bodies import PHENOTYPE_KEYS, TOPOLOGIES, BodyModel, sample_identities
-from aniformer.synth.motions import ACTIONS, CONTROLLED_PARENTS, Motion, sample_motion
+from aniformer.synth.motions import ACTIONS, Motion, sample_motion
+from aniformer.synth.rig import CONTROLLED_PARENTS
 
 FRAMES = 30
 # Bound on any vertex's move between consecutive frames of a 30-frame clip. The fastest limb

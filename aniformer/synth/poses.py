@@ -34,18 +34,8 @@ import numpy as np
 import roma
 import torch
 
-from aniformer.synth.motions import (
-    _EYE,
-    _X,
-    _Y,
-    _Z,
-    ACTIONS,
-    CONTROLLED_PARENTS,
-    _Clip,
-    _rot,
-    local_rotvecs,
-    sample_motion,
-)
+from aniformer.synth.motions import ACTIONS, sample_motion
+from aniformer.synth.rig import _EYE, _X, _Y, _Z, CONTROLLED_PARENTS, _Clip, _rot, local_rotvecs
 
 FAMILIES: tuple[str, ...] = ("random", "bend", "crouch", "locomotion", "library", "blend", "kick")
 ORIENTATIONS: tuple[str, ...] = ("upright", "tilted", "any")
