@@ -13,9 +13,10 @@ without authentication. tests/test_limits.py lists a local job's listening socke
 
 A cluster that cannot be reached is one line (`UserError`), not Ray's traceback. `ray.init` has no
 timeout of its own (ray-project/ray#46863): for an address where nothing answers it retries the GCS
-connection 20 times, about 41 s each (14 min in all). So `connect` first opens a TCP connection to
-the address Ray will dial, with a timeout of `PROBE_SECONDS`; what `ray.init` still raises is caught
-and shortened.
+connection 20 times, about 41 s each (14 min in all), and as long for an address where something
+other than Ray listens. So `connect` first opens a TCP connection to the address Ray will dial, then
+a gRPC channel (the GCS speaks gRPC; a web server or a silent listener never completes its HTTP/2
+handshake), each within `PROBE_SECONDS`; what `ray.init` still raises is caught and shortened.
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ def _root_line(error: BaseException) -> str:
     return outer if root == outer else f"{outer} ({root})"
 
 
-def _probe_cluster(address: str) -> None:
+def probe_cluster(address: str) -> None:
     """Refuse, in one line and within `PROBE_SECONDS`, a RAY_ADDRESS where nothing listens."""
     if "://" in address:  # a Ray Client or job server URL: ray.init's own errors are shortened below
         return
@@ -73,6 +74,22 @@ def _probe_cluster(address: str) -> None:
         reason = f"no answer in {PROBE_SECONDS:g} s" if isinstance(error, TimeoutError) else error.strerror or error
         raise UserError(f"RAY_ADDRESS {address}: no Ray cluster answers at {target} ({reason}); start one "
                         "(ray start --head) or unset RAY_ADDRESS to run on a local Ray") from None
+    _probe_grpc(address, target)
+
+
+def _probe_grpc(address: str, target: str) -> None:
+    """Refuse an address that accepts TCP but is not a gRPC server, such as Ray's GCS, within `PROBE_SECONDS`."""
+    import grpc
+    from ray._private.gcs_utils import create_gcs_channel
+
+    channel = create_gcs_channel(target)  # Ray's own channel: its TLS and token settings
+    try:
+        grpc.channel_ready_future(channel).result(timeout=PROBE_SECONDS)
+    except grpc.FutureTimeoutError:
+        raise UserError(f"RAY_ADDRESS {address}: something listens at {target} but it is not a Ray cluster's head "
+                        f"(no gRPC handshake in {PROBE_SECONDS:g} s); check the address and port (GCS: 6379)") from None
+    finally:
+        channel.close()
 
 
 def connect() -> str | None:
@@ -82,7 +99,7 @@ def connect() -> str | None:
         return None
     address = os.environ.get("RAY_ADDRESS")
     if address:
-        _probe_cluster(address)
+        probe_cluster(address)
         try:
             return ray.init(address=address, log_to_driver=True).dashboard_url or None
         except (ConnectionError, RuntimeError) as error:

@@ -4,10 +4,13 @@
     python -m pipeline.mlflow_server --host 10.0.1.23 --port 5000 --store ~/mlflow \\
         --backup s3://aniformer-mlflow-123456789012-us-west-2/mlflow --auth        # what cluster.yaml runs
 
-- Backend store: SQLite `STORE/mlflow.db`. With `--backup DEST` (an `s3://bucket/prefix` or a
-  directory), a missing local database is restored from `DEST/mlflow.db` at start, and a consistent
-  copy (SQLite's online backup API, safe while the server writes) goes to DEST every
-  `--backup-every` seconds and when the server is stopped (SIGTERM/SIGINT).
+- Backend store: SQLite `STORE/mlflow.db`, served by one server at a time (a lock file in STORE: a
+  second server on the same store is refused in one line; two used to race the first migration and
+  break the store for good). With `--backup DEST` (an `s3://bucket/prefix` or a directory), a
+  missing local database is restored from `DEST/` at start, and a consistent copy (SQLite's online
+  backup API, safe while the server writes) goes to DEST every `--backup-every` seconds and when
+  the server is stopped (SIGTERM/SIGINT). With `--auth`, the users' database `basic_auth.db` is
+  restored and backed up the same way.
 - Artifacts: `--artifacts` (default `DEST/artifacts` for an s3:// backup, else `STORE/artifacts`),
   served through the tracking server (`--serve-artifacts`), so clients need no S3 credentials.
 - `--host` must name one address: 0.0.0.0 and :: are refused unless `--allow-all-interfaces`.
@@ -39,8 +42,10 @@ from pathlib import Path
 
 from aniformer.cli import ArgumentParser, run
 from aniformer.errors import UserError
+from aniformer.files import lock_output, releases_locks
 
 DB = "mlflow.db"
+AUTH_DB = "basic_auth.db"  # MLflow's basic-auth users and permissions
 WILDCARDS = {"0.0.0.0", "::", ""}
 
 
@@ -121,20 +126,31 @@ def push(local: Path, dest: str, name: str) -> None:
     os.replace(tmp, target)
 
 
-def backup(store: Path, dest: str) -> None:
-    """A consistent snapshot of STORE/mlflow.db (online backup API), copied to DEST/mlflow.db."""
-    source = store / DB
-    if not source.is_file():
-        return
-    with tempfile.TemporaryDirectory(dir=store) as scratch:
-        snapshot = Path(scratch) / DB
-        src, dst = sqlite3.connect(source), sqlite3.connect(snapshot)
-        try:
-            src.backup(dst)
-        finally:
-            dst.close()
-            src.close()
-        push(snapshot, dest, DB)
+def backup(store: Path, dest: str) -> list[str]:
+    """Consistent snapshots of the store's databases (online backup API), copied to DEST; their names."""
+    done = []
+    for name in (DB, AUTH_DB):
+        source = store / name
+        if not source.is_file():
+            continue
+        with tempfile.TemporaryDirectory(dir=store) as scratch:
+            snapshot = Path(scratch) / name
+            src, dst = sqlite3.connect(source), sqlite3.connect(snapshot)
+            try:
+                src.backup(dst)
+            finally:
+                dst.close()
+                src.close()
+            push(snapshot, dest, name)
+        done.append(name)
+    return done
+
+
+def restore(store: Path, dest: str, auth: bool) -> None:
+    """Fetch the databases the store lacks from DEST (the users' one only for an --auth server)."""
+    for name in (DB, AUTH_DB) if auth else (DB,):
+        if not (store / name).exists() and fetch(dest, name, store / name):
+            print(f"restored {store / name} from {dest}/{name}", flush=True)
 
 
 # ------------------------------------------------------------------ the server process
@@ -156,7 +172,7 @@ def _auth_env(store: Path, password_file: str | None) -> dict[str, str]:
         raise UserError("--auth needs MLflow's auth extra: pip install 'mlflow[auth]'") from None
     ini = store / "basic_auth.ini"
     ini.write_text("[mlflow]\ndefault_permission = NO_PERMISSIONS\n"
-                   f"database_uri = sqlite:///{store / 'basic_auth.db'}\n"
+                   f"database_uri = sqlite:///{store / AUTH_DB}\n"
                    f"admin_username = {os.environ.get('MLFLOW_TRACKING_USERNAME', 'admin')}\n"
                    "authorization_function = mlflow.server.auth:authenticate_request_basic_auth\n")
     key = store / "flask_secret_key"
@@ -211,19 +227,19 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+@releases_locks
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
     host = check_host(args.host, args.allow_all_interfaces)
     store = Path(args.store).expanduser().resolve()
-    store.mkdir(parents=True, exist_ok=True)
+    lock_output(store, "--store")  # one server per store
     dest = args.backup.rstrip("/") if args.backup else None
     if dest and not dest.startswith("s3://"):
         dest = str(Path(dest).expanduser().resolve())
     if dest:
         if args.create_bucket:
             ensure_bucket(dest)
-        if not (store / DB).exists() and fetch(dest, DB, store / DB):
-            print(f"restored {store / DB} from {dest}/{DB}", flush=True)
+        restore(store, dest, args.auth)
     artifacts = args.artifacts or (f"{dest}/artifacts" if dest and dest.startswith("s3://") else str(store / "artifacts"))
     env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
     if args.auth:
@@ -252,8 +268,8 @@ def main(argv: list[str]) -> None:
     finally:
         stop(proc)
         if dest:
-            backup(store, dest)
-            print(f"backed up {store / DB} to {dest}/{DB}", flush=True)
+            for name in backup(store, dest):
+                print(f"backed up {store / name} to {dest}/{name}", flush=True)
 
 
 if __name__ == "__main__":

@@ -309,20 +309,60 @@ def test_a_jobs_local_ray_listens_on_localhost_only():
 
 # ------------------------------------------------------------------------------ a Ray that cannot be reached
 
+def train_with_ray_address(tmp_path: Path, address: str) -> tuple[subprocess.CompletedProcess, float]:
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, str(ROOT / "jobs/train.py"), "--config", str(TINY), "--out",
+                           str(tmp_path / "out"), "train.epochs=1"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=240, env={**os.environ, "RAY_ADDRESS": address,
+                                                       "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"})
+    return done, time.perf_counter() - start
+
+
+def assert_refused_in_one_line(done: subprocess.CompletedProcess, elapsed: float, message: str, tmp_path: Path):
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1 and lines[0].startswith(message), done.stderr[-3000:]
+    assert not done.stdout.strip(), done.stdout[-3000:]
+    assert elapsed < 120, f"{elapsed:.0f} s"  # imports on a loaded machine; the probes give up in 5 s each
+    assert not (tmp_path / "out" / ".lock").exists()
+
+
 @pytest.mark.parametrize(("address", "message"), [
     ("127.0.0.1:1", "error: RAY_ADDRESS 127.0.0.1:1: no Ray cluster answers at "),
     ("127.0.0.1:notaport", "error: RAY_ADDRESS '127.0.0.1:notaport': the port 'notaport' is not a number in 1-65535"),
 ], ids=["nothing-listens", "bad-port"])
 def test_a_ray_address_that_cannot_be_reached_is_one_line_and_exit_2(tmp_path, address, message):
     """Before, `ray.init` retried the GCS connection for minutes and ended in a 20-line traceback."""
-    start = time.perf_counter()
-    done = subprocess.run([sys.executable, str(ROOT / "jobs/train.py"), "--config", str(TINY), "--out",
-                           str(tmp_path / "out"), "train.epochs=1"], cwd=tmp_path, capture_output=True,
-                          text=True, timeout=240, env={**os.environ, "RAY_ADDRESS": address,
-                                                       "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"})
-    elapsed = time.perf_counter() - start
-    lines = done.stderr.strip().splitlines()
-    assert done.returncode == 2 and len(lines) == 1 and lines[0].startswith(message), done.stderr[-3000:]
-    assert not done.stdout.strip(), done.stdout[-3000:]
-    assert elapsed < 120, f"{elapsed:.0f} s"  # imports on a loaded machine; the probe itself gives up in 5 s
-    assert not (tmp_path / "out" / ".lock").exists()
+    assert_refused_in_one_line(*train_with_ray_address(tmp_path, address), message, tmp_path)
+
+
+@pytest.mark.parametrize("listener", ["web-server", "silent"])
+def test_a_ray_address_where_something_else_listens_is_refused_by_the_probe(listener):
+    """A port that accepts TCP but is not Ray's GCS (a web server, or one that never answers): before,
+    `ray.init` retried for 14 min. Bound where Ray dials: it replaces 127.0.0.1 by the node's address."""
+    import ray
+
+    from pipeline.cluster import probe_cluster
+
+    host = ray.util.get_node_ip_address()
+    if listener == "web-server":
+        server = http.server.ThreadingHTTPServer((host, 0), Unauthorized)
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        port, close = server.server_port, lambda: (server.shutdown(), server.server_close())
+    else:
+        silent = socket.socket()
+        silent.bind((host, 0))
+        silent.listen()
+        port, close = silent.getsockname()[1], silent.close
+    try:
+        with pytest.raises(UserError) as refused:
+            probe_cluster(f"127.0.0.1:{port}")
+    finally:
+        close()
+    assert str(refused.value).startswith(f"RAY_ADDRESS 127.0.0.1:{port}: something listens at {host}:{port} but "
+                                         "it is not a Ray cluster's head (no gRPC handshake in 5 s)")
+
+
+def test_a_ray_clusters_head_passes_the_probe(ray_address):
+    from pipeline.cluster import probe_cluster
+
+    probe_cluster(ray_address)  # the session's real cluster: its GCS completes the handshake

@@ -1,7 +1,8 @@
 """`python -m pipeline.mlflow_server` as cluster.yaml runs it, against real components.
 
 - `--auth`: MLflow's basic-auth app answers 401 without (or with wrong) credentials and 200 with
-  the admin user and the password from `--password-file`.
+  the admin user and the password from `--password-file`; a second server on the same store is
+  refused; a user created there comes back from a directory backup into an empty store.
 - `--backup s3://...`: moto's S3 server on 127.0.0.1 stands in for AWS. The first server creates the
   bucket private, keeps its artifacts in the bucket and backs its database up when stopped; a second
   server on an empty store restores the database from the bucket, with the run and its artifact.
@@ -12,6 +13,7 @@ Each server takes 10-25 s to start (database migrations), hence `slow`: the file
 from __future__ import annotations
 
 import base64
+import json
 import os
 import random
 import signal
@@ -144,11 +146,21 @@ def status(url: str, user: str | None = None, password: str | None = None) -> in
         return e.code
 
 
+def request(url: str, user: str, password: str, body: dict | None = None) -> urllib.request.Request:
+    req = urllib.request.Request(url, data=json.dumps(body).encode() if body is not None else None,
+                                 headers={"Content-Type": "application/json"} if body is not None else {})
+    req.add_header("Authorization", "Basic " + base64.b64encode(f"{user}:{password}".encode()).decode())
+    return req
+
+
 def test_auth_answers_401_without_credentials_and_200_with_the_admin_password(tmp_path, servers):
+    """Also: one server per store (a second is refused at once), and with --backup the users' database
+    is backed up and restored beside the runs' one."""
     password_file = tmp_path / "auth_token"
     password_file.write_text(PASSWORD + "\n")  # `ray get-auth-token --generate` ends its file with a newline
-    server = servers("auth", ["--store", str(tmp_path / "store"), "--auth", "--password-file", str(password_file)],
-                     clean_env(MLFLOW_TRACKING_USERNAME="admin"))
+    args = ["--auth", "--password-file", str(password_file), "--backup", str(tmp_path / "backup")]
+    env = clean_env(MLFLOW_TRACKING_USERNAME="admin")
+    server = servers("auth", ["--store", str(tmp_path / "store"), *args], env)
     search = f"{server.url}/api/2.0/mlflow/experiments/search?max_results=10"
 
     assert status(search) == 401
@@ -157,8 +169,26 @@ def test_auth_answers_401_without_credentials_and_200_with_the_admin_password(tm
     assert status(search, "admin", PASSWORD) == 200
     assert status(f"{server.url}/health") == 200  # the wrapper's readiness probe sends no credentials
 
+    second = subprocess.run([sys.executable, "-m", "pipeline.mlflow_server", "--host", "127.0.0.1", "--port",
+                             str(free_port()), "--store", str(tmp_path / "store")], cwd=ROOT, env=env,
+                            capture_output=True, text=True, timeout=60)
+    lines = second.stderr.strip().splitlines()
+    assert second.returncode == 2 and len(lines) == 1, second.stderr[-3000:]
+    assert lines[0].startswith(f"error: --store {tmp_path / 'store'} is in use by another job (pid {server.proc.pid} ")
+
+    with urllib.request.urlopen(request(f"{server.url}/api/2.0/mlflow/users/create", "admin", PASSWORD,
+                                        {"username": "ana", "password": "a-user-password-of-ana"}), timeout=10) as r:
+        assert r.status == 200
+    assert status(search, "ana", "a-user-password-of-ana") == 200
     assert server.stop() == 0, server.output()[-3000:]
     assert not [pid for pid in server.tree if alive(pid)], "the server left processes behind"
+    assert f"backed up {tmp_path / 'store' / 'basic_auth.db'} to {tmp_path / 'backup'}/basic_auth.db" in server.output()
+
+    restored = servers("restored", ["--store", str(tmp_path / "empty"), *args], env)
+    assert f"restored {tmp_path / 'empty' / 'basic_auth.db'} from {tmp_path / 'backup'}/basic_auth.db" in restored.output()
+    search = f"{restored.url}/api/2.0/mlflow/experiments/search?max_results=10"
+    assert status(search, "ana", "a-user-password-of-ana") == 200  # the user came back with the store
+    assert status(search, "ana", "not-her-password-at-all") == 401
 
 
 @pytest.fixture
