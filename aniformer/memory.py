@@ -184,6 +184,10 @@ def _resblock(m: int, c: int, modulation: int, mixed: bool) -> _Ledger:
     return ledger
 
 
+# A checkpointed part of a model: (what it saves while it runs, what is kept of it: its output).
+_Stage = tuple[_Ledger, _Ledger]
+
+
 def count_activations(model_name: str, config, batch: int, vertices: tuple[int, int], precision: str = "fp32",
                       faces: int | None = None, activation_checkpointing: bool = False) -> tuple[int, int]:
     """(saved-activation bytes, workspace bytes) of one forward + loss for `batch` windows.
@@ -199,70 +203,18 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
     B, (V1, V2) = batch, vertices
     T = config.window
     F = faces if faces is not None else 2 * V2
-    ledger = _Ledger()
-    stages: list[tuple[_Ledger, _Ledger]] = []  # checkpointed parts: (what they save, what is kept of them)
+    ledger = _Ledger()  # what is saved outside the checkpointed parts
     ext = tuple(config.extractor_channels)
     if model_name == "npt":
-        S = B * T  # frames are samples
-        m1, m2 = S * V1, S * V2
-        stages.append((_extractor(m1, ext), _Ledger()))  # output not kept: an add / concat takes it
-        if V1 != V2:
-            ledger.add(m1 * ext[-1], fp32=True)  # amax saves its input
-        ledger.add(m2 * (ext[-1] + 3))  # [pose, identity] concatenated, saved by the first projection
-        widths = tuple(config.channels)
-        for c in widths:
-            ledger.add(m2 * c)  # projection out (the block's input)
-            stages.append((_resblock(m2, c, S * V2 * c, mixed), _kept(m2 * c)))
-        out_frames = T
+        stages, out_frames = _npt_stages(ledger, config, B * T, V1, V2, ext, mixed)
     elif model_name == "aniformer":
-        cf = ext[-1]
-        m1, m2 = B * T * V1, B * T * V2
-        stages.append((_extractor(m1, ext), _Ledger()))  # output not kept: an add / concat takes it
-        ledger.add(m1 * cf)  # features + temporal embedding (eq. 1), saved by the first proj / to_kv
-        cross = config.attention == "cross"
-        if cross:
-            stages.append((_extractor(B * V2, ext), _Ledger()))
-            ledger.add(m2 * cf)  # the expanded target features, materialised for the first proj
-        elif config.pool_driving or V1 != V2:
-            ledger.add(m1 * cf, fp32=True)  # amax saves its input
-            ledger.add(m2 * cf)  # the broadcast code, materialised for the first proj
-        for c, heads in zip(config.channels, config.stage_heads()):
-            mix = _Ledger()  # EncoderStage.mix: width change and attention
-            mix.add(m2 * c)  # proj out
-            mix.add(m2 * c)  # q
-            mix.add((m1 if cross else m2) * 2 * c)  # k | v
-            mix.add(m2 * c)  # SDPA out
-            mix.add(m2 * heads, fp32=True)  # SDPA log-sum-exp: linear in V, no V x V map
-            mix.add(m2 * c, fp32=True)  # x + gamma * attention (fp32: gamma promotes it)
-            if config.temporal == "attention":
-                mix.add(m2 * c)  # compute-dtype copy of the residual for to_qkv (0 in fp32: it is the residual)
-                mix.add(m2 * 3 * c)  # q | k | v across frames
-                mix.add(m2 * c)  # SDPA out
-                mix.add(m2 * heads, fp32=True)
-                mix.add(m2 * c, fp32=True)  # the gated residual
-            stages.append((mix, _kept(m2 * c, fp32=True)))  # the fp32 residual: the block's input
-            stages.append((_resblock(m2, c, B * V2 * c, mixed), _kept(m2 * c)))
-        last = config.channels[-1]
-        out_frames = T
-        if config.head == "regression":
-            ledger.add(2 * B * V2 * last)  # the head's Linear in / ReLU out on the frame-averaged features
-            out_frames = 1
+        stages, out_frames = _aniformer_stages(ledger, config, B, T, V1, V2, ext, mixed)
     else:
         raise ValueError(f"no memory model for model {model_name!r}")
-    mo = B * out_frames * V2
-    ledger.add(3 * mo * 3)  # xyz out, tanh out, 2 * tanh (the prediction)
-    # losses in fp32: pred.float(), rec's difference, eq. 4's frame differences, eq. 5's edge gathers
-    ledger.add(mo * 3 * 4, fp32=True)
-    ledger.add(B * out_frames * F * (9 + 3), fp32=True)
+    ledger.merge(_prediction_and_losses(B * out_frames * V2, B * out_frames * F))
     parts = 0
     if activation_checkpointing:
-        # Backward reruns the parts last to first; while part k reruns, the outputs kept for the parts
-        # before it are alive, those of the parts after it are freed already.
-        kept = 0
-        for part, output in stages:
-            parts = max(parts, kept + part.bytes(compute_bytes))
-            kept += output.bytes(compute_bytes)
-        parts = max(parts, kept)  # the end of the forward pass
+        parts = _checkpointed_peak(stages, compute_bytes)
     else:
         for part, _ in stages:
             ledger.merge(part)
@@ -271,6 +223,83 @@ def count_activations(model_name: str, config, batch: int, vertices: tuple[int, 
     c_max = max((*ext, *getattr(config, "channels", ())))
     workspace = 3 * B * T * max(V1, V2) * c_max * 4
     return activations, workspace
+
+
+def _npt_stages(ledger: _Ledger, config, S: int, V1: int, V2: int, ext: tuple[int, ...],
+                mixed: bool) -> tuple[list[_Stage], int]:
+    """NPT on `S` = B*T samples (frames are samples): its parts, and the frames it predicts per window."""
+    m1, m2 = S * V1, S * V2
+    stages: list[_Stage] = [(_extractor(m1, ext), _Ledger())]  # output not kept: an add / concat takes it
+    if V1 != V2:
+        ledger.add(m1 * ext[-1], fp32=True)  # amax saves its input
+    ledger.add(m2 * (ext[-1] + 3))  # [pose, identity] concatenated, saved by the first projection
+    for c in config.channels:
+        ledger.add(m2 * c)  # projection out (the block's input)
+        stages.append((_resblock(m2, c, S * V2 * c, mixed), _kept(m2 * c)))
+    return stages, config.window
+
+
+def _aniformer_stages(ledger: _Ledger, config, B: int, T: int, V1: int, V2: int, ext: tuple[int, ...],
+                      mixed: bool) -> tuple[list[_Stage], int]:
+    """AniFormer: its parts (extractors, then each encoder stage's mix and block), and the frames it predicts."""
+    cf = ext[-1]
+    m1, m2 = B * T * V1, B * T * V2
+    stages: list[_Stage] = [(_extractor(m1, ext), _Ledger())]  # output not kept: an add / concat takes it
+    ledger.add(m1 * cf)  # features + temporal embedding (eq. 1), saved by the first proj / to_kv
+    cross = config.attention == "cross"
+    if cross:
+        stages.append((_extractor(B * V2, ext), _Ledger()))
+        ledger.add(m2 * cf)  # the expanded target features, materialised for the first proj
+    elif config.pool_driving or V1 != V2:
+        ledger.add(m1 * cf, fp32=True)  # amax saves its input
+        ledger.add(m2 * cf)  # the broadcast code, materialised for the first proj
+    for c, heads in zip(config.channels, config.stage_heads()):
+        stages.append((_stage_mix(m1 if cross else m2, m2, c, heads, config.temporal == "attention"),
+                       _kept(m2 * c, fp32=True)))  # the fp32 residual: the block's input
+        stages.append((_resblock(m2, c, B * V2 * c, mixed), _kept(m2 * c)))
+    if config.head == "regression":
+        ledger.add(2 * B * V2 * config.channels[-1])  # the head's Linear in / ReLU out on the frame-averaged features
+        return stages, 1
+    return stages, T
+
+
+def _stage_mix(kv: int, m: int, c: int, heads: int, temporal_attention: bool) -> _Ledger:
+    """EncoderStage.mix on `m` vertices-in-frames of width c: width change and attention (keys, values
+    from `kv` vertices-in-frames), then attention across frames if `temporal_attention`."""
+    ledger = _Ledger()
+    ledger.add(m * c)  # proj out
+    ledger.add(m * c)  # q
+    ledger.add(kv * 2 * c)  # k | v
+    ledger.add(m * c)  # SDPA out
+    ledger.add(m * heads, fp32=True)  # SDPA log-sum-exp: linear in V, no V x V map
+    ledger.add(m * c, fp32=True)  # x + gamma * attention (fp32: gamma promotes it)
+    if temporal_attention:
+        ledger.add(m * c)  # compute-dtype copy of the residual for to_qkv (0 in fp32: it is the residual)
+        ledger.add(m * 3 * c)  # q | k | v across frames
+        ledger.add(m * c)  # SDPA out
+        ledger.add(m * heads, fp32=True)
+        ledger.add(m * c, fp32=True)  # the gated residual
+    return ledger
+
+
+def _prediction_and_losses(mo: int, edges: int) -> _Ledger:
+    """The output head's xyz and the losses, for `mo` predicted vertices-in-frames and `edges` = B*frames*F."""
+    ledger = _Ledger()
+    ledger.add(3 * mo * 3)  # xyz out, tanh out, 2 * tanh (the prediction)
+    # losses in fp32: pred.float(), rec's difference, eq. 4's frame differences, eq. 5's edge gathers
+    ledger.add(mo * 3 * 4, fp32=True)
+    ledger.add(edges * (9 + 3), fp32=True)
+    return ledger
+
+
+def _checkpointed_peak(stages: list[_Stage], compute_bytes: int) -> int:
+    """Backward reruns the parts last to first; while part k reruns, the outputs kept for the parts
+    before it are alive, those of the parts after it are freed already."""
+    peak = kept = 0
+    for part, output in stages:
+        peak = max(peak, kept + part.bytes(compute_bytes))
+        kept += output.bytes(compute_bytes)
+    return max(peak, kept)  # the end of the forward pass
 
 
 def parameter_count(model_name: str, config) -> int:
