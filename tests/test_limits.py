@@ -362,6 +362,22 @@ def test_a_ray_address_where_something_else_listens_is_refused_by_the_probe(list
                                          "it is not a Ray cluster's head (no gRPC handshake in 5 s)")
 
 
+def test_a_local_ray_that_cannot_start_is_one_line_and_exit_2(tmp_path):
+    """No RAY_ADDRESS, and a temp dir Ray cannot create (RAY_TMPDIR under a file): before, a traceback."""
+    (tmp_path / "a-file").write_text("")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    env["RAY_TMPDIR"] = str(tmp_path / "a-file" / "ray")
+    done = subprocess.run([sys.executable, str(ROOT / "jobs/train.py"), "--config", str(TINY), "--out",
+                           str(tmp_path / "out"), "train.epochs=1"], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=240, env={**env, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"})
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert lines[-1] == f"error: a local Ray instance could not start: [Errno 20] Not a directory: '{env['RAY_TMPDIR']}'"
+    # before it only Ray's own notice that the new local cluster has token auth
+    assert all("Token authentication is enabled" in line for line in lines[:-1]), lines
+    assert not (tmp_path / "out" / ".lock").exists()
+
+
 def test_a_ray_clusters_head_passes_the_probe(ray_address):
     from pipeline.cluster import probe_cluster
 
