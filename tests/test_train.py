@@ -69,25 +69,34 @@ def finish(job: subprocess.Popen, timeout: float = 900, code: int | None = 0) ->
     return output(job)
 
 
-def wait_for_checkpoint(out: Path, job: subprocess.Popen, timeout: float = 600) -> None:
-    deadline = time.time() + timeout
-    while not list((out / "ray").glob("*/checkpoint_*/checkpoint.pt")):
-        assert job.poll() is None, output(job)[-3000:]
-        assert time.time() < deadline, "no checkpoint appeared"
-        time.sleep(0.5)
+def registered_epoch(out: Path) -> int:
+    """The epoch of the checkpoint Ray Train has registered for the job at `out` (its checkpoint manager's
+    snapshot, which is what a worker restart or a rerun restores from, `resume_epoch`); 0 while none is.
+    A checkpoint file on disk is not enough: until it is registered a restore cannot find it."""
+    from pipeline.checkpoints import resume_epoch
+    from pipeline.train import ray_run_name
+
+    return resume_epoch(out / "ray" / ray_run_name(out.name))
 
 
-def wait_for_epoch(out: Path, job: subprocess.Popen, epoch: int, timeout: float = 600) -> None:
-    """Until the job's MLflow run has logged `epoch` (so the checkpoint of epoch - 1 is registered)."""
-    wait_for_checkpoint(out, job)  # by then the job has created the MLflow tables: no migration race
-    deadline = time.time() + timeout
+def wait_until(what: str, ready, job: subprocess.Popen, timeout: float = 600, every: float = 0.5):
+    """Poll `ready()` until it is true while `job` runs; fail with `what` at the deadline or if the job ends."""
+    deadline, problem = time.time() + timeout, None
     while True:
-        assert job.poll() is None, output(job)[-3000:]
-        assert time.time() < deadline, f"epoch {epoch} was not reached"
-        client, runs = job_runs(out)
-        if runs and any(v >= epoch for _, v in logged(client, runs[0], "epoch")):
-            return
-        time.sleep(1)
+        assert job.poll() is None, f"the job ended before {what}:\n" + output(job)[-3000:]
+        try:
+            if value := ready():
+                return value
+        except Exception as e:  # a snapshot or the MLflow store caught mid-write: ask again
+            problem = e
+        assert time.time() < deadline, f"timed out waiting for {what} (last error: {problem!r})"
+        time.sleep(every)
+
+
+def wait_for_registered(out: Path, job: subprocess.Popen, epoch: int) -> int:
+    """Until Ray Train has registered the job's checkpoint of `epoch` (or a later one); that epoch."""
+    return wait_until(f"a registered checkpoint of epoch {epoch}",
+                      lambda: (e := registered_epoch(out)) >= epoch and e, job)
 
 
 def job_runs(out: Path):
@@ -138,54 +147,91 @@ def test_two_worker_ddp_on_two_nodes_is_tracked_in_mlflow(tmp_path, tiny_bank, r
     assert [a.path for a in client.list_artifacts(run.info.run_id, "checkpoints")] == ["checkpoints/best.pt"]
 
 
+def restore_nodes(cluster, count: int) -> None:
+    """Add worker nodes (as conftest makes them) until `cluster` has `count` again."""
+    from conftest import NODE_CPUS, OBJECT_STORE_BYTES
+
+    while len(cluster.list_all_nodes()) < count:
+        cluster.add_node(num_cpus=NODE_CPUS, object_store_memory=OBJECT_STORE_BYTES)
+    cluster.wait_for_nodes()
+
+
 def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_bank, ray_cluster, ray_address,
                                                                    repo_root):
+    """A node lost mid-training: Ray Train restarts the workers from the last registered checkpoint and the
+    run goes on from there. The kill lands once the checkpoint of epoch 1 is registered (so there is one to
+    restore) and while epochs 2 and 3 are still to train; DDP ranks step in lockstep, so with a rank dead
+    the run cannot finish without a restore."""
+    epochs = 3
     out = tmp_path / "fault"
+    nodes = len(ray_cluster.list_all_nodes())
     victim = next(node for node in ray_cluster.list_all_nodes() if node is not ray_cluster.head_node)
     # STRICT_SPREAD: one training worker is on each node, so one of them dies with `victim`.
     job = start_job(repo_root, ray_address, out, tiny_bank, *TWO_WORKERS, "train.placement_strategy=STRICT_SPREAD",
-                    "train.epochs=3", "train.max_failures=3")
-    removed = False
+                    f"train.epochs={epochs}", "train.max_failures=3")
     try:
-        wait_for_epoch(out, job, 2)
+        registered = wait_for_registered(out, job, 1)
+        assert registered < epochs, f"the checkpoint of epoch {registered} was registered before the kill"
         ray_cluster.remove_node(victim, allow_graceful=False)  # SIGKILL, like a lost machine
-        removed = True
-    finally:
-        if removed:  # leave the shared cluster as it was: two nodes
-            ray_cluster.add_node(num_cpus=1, object_store_memory=512 * 1024**2)
-            ray_cluster.wait_for_nodes()
-        else:
-            stop(job)
-    finish(job)
+        assert job.poll() is None, "the job ended before the node was killed:\n" + output(job)[-3000:]
+        restore_nodes(ray_cluster, nodes)  # STRICT_SPREAD needs two nodes to restart the workers
+        finish(job)
+    finally:  # never leave the job running nor the shared cluster short of a node, whatever failed
+        stop(job)
+        restore_nodes(ray_cluster, nodes)
 
     client, (run,) = job_runs(out)
-    resumed = logged(client, run, "resumed_from_epoch")
-    assert resumed and resumed[0][1] >= 1, "training did not restore from a checkpoint"
-    epochs = [value for _, value in logged(client, run, "epoch")]
-    # The epoch in flight at the kill may be redone; nothing before the restored checkpoint is.
-    assert epochs.count(1.0) == 1, f"the epoch counter restarted: {epochs}"
-    assert sorted(set(epochs)) == [1.0, 2.0, 3.0], epochs
-    assert epochs[-1] == 3 and load_checkpoint(out / "last.pt")["epoch"] == 3
+    resumed = logged(client, run, "resumed_from_epoch")  # logged only by workers that started from a checkpoint
+    assert len(resumed) == 1, f"expected one restore, got {resumed}"
+    (step, restored), = resumed
+    # from a checkpoint registered at or after the kill point, with epochs still to train
+    assert step == restored and registered <= restored < epochs, resumed
+    epochs_logged = [value for _, value in logged(client, run, "epoch")]
+    # The epoch in flight at the kill may be redone; none up to the restored checkpoint is.
+    assert all(epochs_logged.count(e) == 1 for e in range(1, int(restored) + 1)), \
+        f"the epoch counter restarted: {epochs_logged}"
+    assert sorted(set(epochs_logged)) == [1.0, 2.0, 3.0], epochs_logged
+    assert epochs_logged[-1] == epochs and load_checkpoint(out / "last.pt")["epoch"] == epochs
     assert run.info.status == "FINISHED"
 
 
-def test_interrupted_driver_resumes_when_run_again(tmp_path, tiny_bank, ray_address, repo_root):
+def test_an_interrupted_job_ends_its_run_killed_and_a_rerun_resumes_it(tmp_path, tiny_bank, ray_address, repo_root):
+    """Ctrl-C (SIGINT: Ray Train's own handler aborts the fit, the job exits 1) and `ray job stop` or kill
+    (SIGTERM: `run`'s handler, exit 143 with one line) both end the MLflow run KILLED, never RUNNING, and
+    release the --out lock; each interrupted run is resumed by the next run of the same command, which
+    continues the same MLflow run from the checkpoint Ray Train had registered."""
     out = tmp_path / "resume"
     job = start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=3")
-    # Not just a checkpoint file on disk: Ray Train must have registered it, or a rerun has nothing to
-    # restore. The run logging epoch 2 means the checkpoint of epoch 1 is registered.
-    wait_for_epoch(out, job, 2)
+    # Not just a checkpoint file on disk: Ray Train must have registered it, or a rerun has nothing to restore.
+    wait_for_registered(out, job, 1)
     job.send_signal(signal.SIGINT)
     finish(job, timeout=120, code=None)  # Ray Train's own SIGINT handler aborts the run and exits 1
     client, (run,) = job_runs(out)
-    assert run.info.status == "KILLED"  # never left RUNNING
+    assert run.info.status == "KILLED" and not (out / ".lock").exists()
+    after_sigint = registered_epoch(out)
+
+    job = start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=3")
+    # the rerun restored (it logs resumed_from_epoch as its workers start), and trains on: now stop it
+    wait_until("the rerun's restore", lambda: resumed_epochs(out), job)
+    job.send_signal(signal.SIGTERM)
+    assert finish(job, timeout=120, code=143).splitlines()[-1] == "terminated (SIGTERM)"
+    client, (run,) = job_runs(out)
+    assert run.info.status == "KILLED" and not (out / ".lock").exists()
+    after_sigterm = registered_epoch(out)
 
     finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=3"))
     client, runs = job_runs(out)
     assert len(runs) == 1 and runs[0].info.status == "FINISHED"  # the same MLflow run, continued
-    resumed = logged(client, runs[0], "resumed_from_epoch")
-    assert resumed and resumed[0][1] >= 1
+    # each rerun restored exactly the checkpoint registered when the run before it was interrupted
+    assert sorted(resumed_epochs(out)) == sorted([after_sigint, after_sigterm]), (after_sigint, after_sigterm)
+    assert 1 <= after_sigint <= after_sigterm < 3
     assert load_checkpoint(out / "last.pt")["epoch"] == 3
+
+
+def resumed_epochs(out: Path) -> list[float]:
+    """The `resumed_from_epoch` values the job's MLflow run has logged (one per restore)."""
+    client, runs = job_runs(out)
+    return [value for _, value in logged(client, runs[0], "resumed_from_epoch")] if runs else []
 
 
 BAD_OVERRIDES = [("train.epochs=0", "epochs must be >= 1"),
@@ -257,40 +303,6 @@ def test_training_reads_pairs_in_id_order(tmp_path, tiny_bank, repo_root):
     assert ids == [e * 100_000 + i for e in (0, 1) for i in range(3000)]
 
 
-def test_a_resumed_run_reads_only_the_epochs_it_has_not_trained(tmp_path, tiny_bank, repo_root):
-    """A run re-created after a checkpoint at epoch 1: its train dataset starts at epoch 1 (no pairs of
-    epoch 0 are made and skipped), and the real loop trains on from there."""
-    import numpy as np
-
-    from aniformer.cli import load_config
-    from pipeline.checkpoints import resume_epoch
-    from pipeline.train import RunSpec, fit
-
-    tiny = repo_root / "configs/tiny.yaml"
-    storage = tmp_path / "ray"
-    assert resume_epoch(storage / "resume") == 0
-    one = RunSpec.from_config(load_config(tiny, ["train.epochs=1"]))
-    assert fit(one, tiny_bank, storage, "resume", None, np.zeros((1, 3), np.int64)).error is None
-    assert resume_epoch(storage / "resume") == 1
-    two = RunSpec.from_config(load_config(tiny, ["train.epochs=2"]))
-    ids = recorded_pair_ids(two, tiny_bank, storage, "resume")
-    assert ids == [100_000 + i for i in range(two.data.pairs_per_epoch)]
-    result = fit(two, tiny_bank, storage, "resume", None, np.zeros((1, 3), np.int64))
-    assert result.error is None and result.metrics["epoch"] == 2
-
-
-def test_sigterm_exits_143_with_one_line_and_ends_the_run_killed(tmp_path, tiny_bank, ray_address, repo_root):
-    """`ray job stop` and kill send SIGTERM: exit 143, one line, the MLflow run KILLED, the lock gone."""
-    out = tmp_path / "term"
-    job = start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=3")
-    wait_for_epoch(out, job, 1)
-    job.send_signal(signal.SIGTERM)
-    assert finish(job, timeout=120, code=143).splitlines()[-1] == "terminated (SIGTERM)"
-    client, (run,) = job_runs(out)
-    assert run.info.status == "KILLED"
-    assert not (out / ".lock").exists()
-
-
 def test_a_worker_error_is_one_line_with_its_root_cause_and_the_logs(tmp_path, tiny_bank, ray_address, repo_root):
     """On CPU no cuDNN attention exists: the worker's forward raises. Ray Train's fit() raises a
     WorkerGroupError around it; the job prints the root cause in one line and exits 2."""
@@ -305,37 +317,47 @@ def test_a_worker_error_is_one_line_with_its_root_cause_and_the_logs(tmp_path, t
     assert run.info.status == "FAILED"
 
 
-def test_resume_falls_back_to_the_newest_intact_checkpoint(tmp_path, tiny_bank, ray_address, repo_root):
-    """A truncated latest Ray checkpoint (a crash or a full disk while it was written): the rerun resumes
-    from the one before it instead of failing every retry."""
-    out = tmp_path / "trunc"
-    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=2"))
-    first, latest = sorted(p for p in (out / "ray" / "trunc").glob("checkpoint_*") if p.is_dir())
+
+
+def test_a_unicode_named_run_resumes_past_a_truncated_checkpoint_reading_only_untrained_epochs(
+        tmp_path, tiny_bank, ray_address, repo_root):
+    """One scenario, three guarantees.
+    A non-ASCII --out, and so job name: MLflow keeps the name, Ray Train is given an ASCII one (it encodes
+    its metric tags as ASCII; the run used to fail with a UnicodeEncodeError), and a rerun finds that same
+    Ray directory and resumes from it.
+    A truncated latest Ray checkpoint (a crash or a full disk while it was written): the rerun resumes
+    from the one before it instead of failing every retry.
+    The resumed run's train dataset starts at the restored epoch (no pairs of earlier epochs are made and
+    skipped), and the real loop trains on from there."""
+    from aniformer.cli import load_config
+    from pipeline.checkpoints import resume_epoch
+    from pipeline.train import RunSpec, ray_run_name
+
+    out = tmp_path / "ünï cødé"
+    ray_name = ray_run_name(out.name)
+    assert resume_epoch(out / "ray" / ray_name) == 0  # no run yet
+    assert "UnicodeEncodeError" not in finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=2"))
+    assert ray_name.isascii() and sorted(p.name for p in (out / "ray").iterdir() if p.is_dir()) == [ray_name]
+    client, (run,) = job_runs(out)  # found by the real name
+    unseen = logged(client, run, "pmd_unseen")
+    assert load_checkpoint(out / "best.pt")["epoch"] == min(unseen, key=lambda epoch_pmd: epoch_pmd[1])[0]
+    assert load_checkpoint(out / "last.pt")["epoch"] == 2
+
+    first, latest = sorted(p for p in (out / "ray" / ray_name).glob("checkpoint_*") if p.is_dir())
     assert load_checkpoint(first)["epoch"] == 1 and load_checkpoint(latest)["epoch"] == 2
     payload = (latest / "checkpoint.pt").read_bytes()
     (latest / "checkpoint.pt").write_bytes(payload[: len(payload) // 2])
+    assert resume_epoch(out / "ray" / ray_name) == 1  # past the truncated one
+
+    # what the rerun's train dataset holds: the pairs of epochs 2 and 3 only (ids epoch * 100,000 + index)
+    three = RunSpec.from_config(load_config(repo_root / "configs/tiny.yaml", ["train.epochs=3"]))
+    ids = recorded_pair_ids(three, tiny_bank, out / "ray", out.name)
+    assert ids == [e * 100_000 + i for e in (1, 2) for i in range(three.data.pairs_per_epoch)]
 
     log = finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=3"))
     assert f"resuming from the newest intact checkpoint, {first.name} (epoch 1)" in log, log[-3000:]
-    client, (run,) = job_runs(out)  # the same MLflow run, continued
+    assert sorted(p.name for p in (out / "ray").iterdir() if p.is_dir()) == [ray_name]  # the same Ray directory
+    client, (run,) = job_runs(out)  # the same MLflow run, continued, found by the real name
     assert [v for _, v in logged(client, run, "resumed_from_epoch")] == [1.0]
     assert sorted(v for _, v in logged(client, run, "epoch")) == [1.0, 2.0, 2.0, 3.0]
     assert load_checkpoint(out / "last.pt")["epoch"] == 3 and run.info.status == "FINISHED"
-
-
-def test_a_unicode_output_name_trains_and_resumes(tmp_path, tiny_bank, ray_address, repo_root):
-    """A non-ASCII --out, and so job name: MLflow keeps the name, Ray Train is given an ASCII one (it
-    encodes its metric tags as ASCII; the run used to fail with a UnicodeEncodeError), and a rerun
-    finds that same Ray directory and resumes from it."""
-    from pipeline.train import ray_run_name
-
-    out = tmp_path / "ünï cødé"
-    assert "UnicodeEncodeError" not in finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=1"))
-    assert sorted(p.name for p in (out / "ray").iterdir() if p.is_dir()) == [ray_run_name(out.name)]
-    assert ray_run_name(out.name).isascii() and load_checkpoint(out / "best.pt")["epoch"] == 1
-
-    finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=2"))
-    client, (run,) = job_runs(out)  # found by the real name
-    assert [v for _, v in logged(client, run, "resumed_from_epoch")] == [1.0]
-    assert sorted(v for _, v in logged(client, run, "epoch")) == [1.0, 2.0]
-    assert load_checkpoint(out / "last.pt")["epoch"] == 2 and run.info.status == "FINISHED"
