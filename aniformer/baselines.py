@@ -18,12 +18,13 @@ import torch
 from einops import rearrange
 from torch import nn
 
+from aniformer.config import Section
 from aniformer.mesh import center_bbox
 from aniformer.model import AniFormer, AniFormerConfig, FeatureExtractor, SPAdaINResBlock, run_block
 
 
 @dataclass(frozen=True)
-class NPTConfig:
+class NPTConfig(Section):
     """NPT's published widths: encoder 64-128-1024, decoder 1027-513-256 (1027 = 1024 + xyz)."""
 
     extractor_channels: tuple[int, ...] = (64, 128, 1024)
@@ -31,14 +32,9 @@ class NPTConfig:
     window: int = 3  # frames per sample; NPT treats them independently
 
     def __post_init__(self):
-        object.__setattr__(self, "channels", tuple(self.channels))
-        object.__setattr__(self, "extractor_channels", tuple(self.extractor_channels))
+        super().__post_init__()
         if not self.channels or not self.extractor_channels:
             raise ValueError("channels and extractor_channels must not be empty")
-
-    def to_dict(self) -> dict:
-        return {"extractor_channels": list(self.extractor_channels), "channels": list(self.channels),
-                "window": self.window}
 
     def output_frames(self) -> slice:
         return slice(None)

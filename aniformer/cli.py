@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import dataclasses
 import os
 import sys
 import unicodedata
@@ -121,22 +120,6 @@ def apply_overrides(config: dict, overrides: Sequence[str]) -> dict:
                 raise UserError(f"override {item!r}: {part!r} is not a section")
         node[leaf] = value
     return config
-
-
-def from_dict(cls: type, values: dict | None, section: str):
-    """Build dataclass `cls` from a config section, naming unknown keys and bad values in one line."""
-    values = dict(values or {})
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise UserError(f"unknown key(s) in [{section}]: {', '.join(unknown)} (known: {', '.join(sorted(names))})")
-    for f in dataclasses.fields(cls):  # YAML gives lists where the dataclass holds tuples
-        if isinstance(values.get(f.name), list):
-            values[f.name] = tuple(values[f.name])
-    try:
-        return cls(**values)
-    except (TypeError, ValueError) as e:
-        raise UserError(f"[{section}] {e}") from None
 
 
 class RunJobParser(ArgumentParser):

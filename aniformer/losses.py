@@ -24,13 +24,15 @@ from dataclasses import dataclass
 
 import torch
 
+from aniformer.config import Section
+
 FORMS = ("absolute", "squared", "printed")
 # Driving frames that move less than ~1 mm RMS are treated as moving 1 mm: keeps the eq. 4 ratio finite.
 MIN_MOTION = 1e-6
 
 
 @dataclass(frozen=True)
-class LossConfig:
+class LossConfig(Section):
     """Weights of eq. 6 (paper: 1, 5e-4, 5e-4) and the form of eq. 4/5's differences."""
 
     rec: float = 1.0
@@ -39,6 +41,7 @@ class LossConfig:
     form: str = "absolute"
 
     def __post_init__(self):
+        super().__post_init__()
         if self.form not in FORMS:
             raise ValueError(f"form must be one of {FORMS}, got {self.form!r}")
         if min(self.rec, self.motion, self.appearance) < 0:

@@ -43,7 +43,6 @@ Switches beyond the paper (all in `AniFormerConfig`):
 
 from __future__ import annotations
 
-import dataclasses
 from contextlib import nullcontext
 from dataclasses import dataclass
 
@@ -54,6 +53,7 @@ from torch import nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.checkpoint import checkpoint
 
+from aniformer.config import Section
 from aniformer.transfer import deformation_transfer
 
 ATTENTIONS = ("self", "cross")
@@ -66,7 +66,7 @@ ATTENTION_KERNELS = {"cudnn": SDPBackend.CUDNN_ATTENTION, "flash": SDPBackend.FL
 
 
 @dataclass(frozen=True)
-class AniFormerConfig:
+class AniFormerConfig(Section):
     """Hyper-parameters; the defaults are the paper's layer plan."""
 
     channels: tuple[int, ...] = (1024, 512, 512, 256)
@@ -80,10 +80,7 @@ class AniFormerConfig:
     pool_driving: bool = False
 
     def __post_init__(self):
-        object.__setattr__(self, "channels", tuple(self.channels))
-        object.__setattr__(self, "extractor_channels", tuple(self.extractor_channels))
-        if isinstance(self.heads, list):
-            object.__setattr__(self, "heads", tuple(self.heads))
+        super().__post_init__()
         if self.attention not in ATTENTIONS:
             raise ValueError(f"attention must be one of {ATTENTIONS}, got {self.attention!r}")
         if self.temporal not in TEMPORALS:
@@ -108,9 +105,6 @@ class AniFormerConfig:
         """The attention heads of each encoder stage. The fused attention kernels run fastest at head
         dim 128 (docs/benchmarks.md): heads = channels / 128, e.g. (8, 4, 4, 2) for the paper's widths."""
         return self.heads if isinstance(self.heads, tuple) else (self.heads,) * len(self.channels)
-
-    def to_dict(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
 
     def output_frames(self) -> slice:
         """Which frames of a window the model predicts: all of them, or the centre one (regression head)."""

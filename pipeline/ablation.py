@@ -33,14 +33,15 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from aniformer.cli import apply_overrides, from_dict, load_config
+from aniformer.cli import apply_overrides, load_config
+from aniformer.config import Section, from_dict
 from aniformer.errors import UserError
 
 BUDGET = (("train", "epochs"), ("train", "batch_size"), ("data", "pairs_per_epoch"))
 
 
 @dataclass(frozen=True)
-class AblationConfig:
+class AblationConfig(Section):
     """The `ablation:` section."""
 
     variants: dict = field(default_factory=dict)
@@ -50,9 +51,9 @@ class AblationConfig:
     copy_driver: bool = True
 
     def __post_init__(self):
+        super().__post_init__()
         if not all(isinstance(o, str) for o in self.common):
             raise ValueError("common must be a list of 'key=value' strings")
-        object.__setattr__(self, "common", tuple(self.common))
         if not isinstance(self.variants, dict) or not self.variants:
             raise ValueError("variants must map row names to lists of key=value overrides")
         for name, overrides in self.variants.items():
@@ -63,7 +64,6 @@ class AblationConfig:
             raise ValueError(f"variant names must differ in their letters and digits, got {list(self.variants)}")
         if self.pairs is not None and int(self.pairs) < 1:
             raise ValueError(f"pairs must be >= 1, got {self.pairs}")
-        object.__setattr__(self, "splits", tuple(self.splits))
 
 
 def slug(name: str) -> str:

@@ -22,7 +22,7 @@ import time
 import unicodedata
 from collections import defaultdict
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +34,7 @@ from ray.train.torch import TorchTrainer
 
 from aniformer.baselines import MODELS, build_model
 from aniformer.checkpoint import FILENAME, save_checkpoint, unwrap
-from aniformer.cli import from_dict
+from aniformer.config import Section, from_dict
 from aniformer.errors import UserError
 from aniformer.files import atomic_path
 from aniformer.losses import LossConfig, loss_terms
@@ -52,7 +52,7 @@ EVAL_SPLITS = ("seen", "unseen")
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(Section):
     """Optimisation and execution; defaults are the paper's (Adam 5e-5, MultiStep 80/120/160 x0.1)."""
 
     epochs: int = 200
@@ -75,8 +75,7 @@ class TrainConfig:
     render_every: int = 5
 
     def __post_init__(self):
-        object.__setattr__(self, "milestones", tuple(self.milestones))
-        object.__setattr__(self, "attention_kernels", tuple(self.attention_kernels))
+        super().__post_init__()
         for name in ("epochs", "batch_size", "grad_accumulation", "workers", "keep_checkpoints", "render_every"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -113,17 +112,18 @@ class RunSpec:
         name = section.pop("name", "aniformer")
         if name not in MODELS:
             raise UserError(f"[model] unknown name {name!r}; choose one of {sorted(MODELS)}")
-        model = from_dict(MODELS[name][1], section, "model")
         data = data_config(config)
-        if getattr(model, "window", data.window) != data.window:
-            raise UserError(f"model.window={model.window} differs from data.window={data.window}")
+        # T is set once, in data.window; a model section that names it (a checkpoint's does) must agree.
+        if section.setdefault("window", data.window) != data.window:
+            raise UserError(f"model.window={section['window']} differs from data.window={data.window}: "
+                            "set the window once, in data.window")
+        model = from_dict(MODELS[name][1], section, "model")
         return cls(data, name, model, from_dict(LossConfig, config.get("loss"), "loss"),
                    from_dict(TrainConfig, config.get("train"), "train"))
 
     def to_dict(self) -> dict:
         return {"data": self.data.to_dict(), "model": {"name": self.model_name, **self.model.to_dict()},
-                "loss": asdict(self.loss), "train": {**asdict(self.train), "milestones": list(self.train.milestones),
-                                                     "attention_kernels": list(self.train.attention_kernels)}}
+                "loss": self.loss.to_dict(), "train": self.train.to_dict()}
 
 
 def resolve_precision(requested: str, device_type: str, bf16_supported: bool) -> str:

@@ -43,7 +43,7 @@ from ray.tune.schedulers import ASHAScheduler
 from ray.tune.search.basic_variant import BasicVariantGenerator
 from ray.util.placement_group import PlacementGroup, placement_group_table, remove_placement_group
 
-from aniformer.cli import from_dict
+from aniformer.config import Section, from_dict
 from aniformer.errors import UserError
 from aniformer.memory import plan_batch
 from pipeline.console import Console
@@ -54,7 +54,7 @@ STATUSES = ("ok", "adjusted_memory", "skipped_memory", "early_stopped", "failed"
 SEARCHES = ("optuna", "random")
 # tune parameter -> the config keys it sets
 PARAMS = {"rec": ("loss.rec",), "motion": ("loss.motion",), "appearance": ("loss.appearance",),
-          "window": ("data.window", "model.window"), "lr": ("train.lr",), "batch_size": ("train.batch_size",)}
+          "window": ("data.window",), "lr": ("train.lr",), "batch_size": ("train.batch_size",)}
 SUMMARY_FIELDS = ("trial_id", "status", "memory_decision", "rec", "motion", "appearance", "window", "lr",
                   "batch_size", "run_batch_size", "grad_accumulation", "predicted_memory_gb",
                   "requested_memory_gb", "measured_memory_gb", "memory_limit_gb", "epochs", "best_pmd_unseen",
@@ -73,7 +73,7 @@ def _bounds(name: str, value, kind=float) -> tuple | None:
 
 
 @dataclass(frozen=True)
-class SweepConfig:
+class SweepConfig(Section):
     """The `sweep:` section of a sweep config (bounds are [low, high], inclusive; log-uniform for floats)."""
 
     num_samples: int = 8
@@ -95,6 +95,7 @@ class SweepConfig:
     points: tuple = ()  # configs tried first (dicts of searched parameters; missing ones: mid-range)
 
     def __post_init__(self):
+        super().__post_init__()
         for name in ("rec", "motion", "appearance", "lr"):
             object.__setattr__(self, name, _bounds(name, getattr(self, name)))
         object.__setattr__(self, "window", _bounds("window", self.window, int))
@@ -120,9 +121,6 @@ class SweepConfig:
             raise ValueError(f"memory_limit_gb must be > 0, got {self.memory_limit_gb}")
         if not self.trial_cpus > 0:
             raise ValueError(f"trial_cpus must be > 0 (Tune needs a resource request), got {self.trial_cpus}")
-
-    def to_dict(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
 
 
 def split_config(config: dict) -> tuple[dict, SweepConfig]:

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aniformer.cli import from_dict, load_config
+from aniformer.cli import load_config
+from aniformer.config import from_dict
 from aniformer.errors import UserError
 from pipeline import data
 
@@ -77,6 +78,30 @@ def test_bad_config_is_one_line_user_error(override, words):
         tiny_cfg(**override)
     message = str(e.value)
     assert words in message and "\n" not in message
+
+
+@pytest.mark.parametrize("config", ["tiny.yaml", "default.yaml", "paper.yaml", "pretrained.yaml"])
+def test_every_section_goes_to_its_dict_and_back_unchanged(config):
+    """One config <-> dict path (aniformer.config): YAML lists become tuples inside, lists again outside."""
+    import yaml
+
+    from pipeline.train import RunSpec
+
+    spec = RunSpec.from_config(load_config(ROOT / "configs" / config))
+    as_dict = spec.to_dict()
+    assert yaml.safe_load(yaml.safe_dump(as_dict)) == as_dict  # plain values only
+    assert RunSpec.from_config(as_dict) == spec
+    assert isinstance(spec.train.milestones, tuple) and isinstance(as_dict["train"]["milestones"], list)
+
+
+def test_the_window_is_set_once_in_data():
+    from pipeline.train import RunSpec
+
+    assert RunSpec.from_config(load_config(TINY)).model.window == 3  # tiny.yaml's model section has none
+    assert RunSpec.from_config(load_config(TINY, ["data.window=5"])).model.window == 5
+    assert RunSpec.from_config(load_config(TINY, ["model.window=5", "data.window=5"])).model.window == 5
+    with pytest.raises(UserError, match=r"model.window=4 differs from data.window=3: set the window once, in data.window"):
+        RunSpec.from_config(load_config(TINY, ["model.window=4"]))
 
 
 def test_heldout_actions_as_a_count_is_seeded():

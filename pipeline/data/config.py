@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from aniformer.animate import CENTER_MODES
-from aniformer.cli import from_dict
+from aniformer.config import Section, from_dict
 from aniformer.synth.bodies import TOPOLOGIES
 from aniformer.synth.motions import ACTIONS
 
@@ -82,9 +82,7 @@ def check_choice(name: str, value: Any, choices: Sequence[str]) -> None:
 
 
 @dataclasses.dataclass(frozen=True)
-
-
-class DataConfig:
+class DataConfig(Section):
     """The ``data:`` section of a config: where pairs come from and how they are drawn.
 
     ``source``: ``bank`` (a mesh bank on disk, described by the fields below) or ``stream`` (pairs
@@ -120,6 +118,7 @@ class DataConfig:
     workers: int = 0  # generation workers; 0 = one per CPU of the Ray cluster
 
     def __post_init__(self):
+        super().__post_init__()
         if self.topology not in TOPOLOGIES:
             raise ValueError(f"topology must be one of {', '.join(TOPOLOGIES)}; got {self.topology!r}")
         check_int("seed", self.seed, 0, 2**32 - 1)
@@ -191,14 +190,9 @@ class DataConfig:
 
     def generation_dict(self) -> dict:
         """The fields that shape the bank, as plain JSON values."""
-        return {k: _jsonable(getattr(self, k)) for k in GENERATION_FIELDS}
+        plain = self.to_dict()
+        return {k: plain[k] for k in GENERATION_FIELDS}
 
-    def to_dict(self) -> dict:
-        return {f.name: _jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}
-
-
-def _jsonable(value):
-    return list(value) if isinstance(value, tuple) else value
 
 
 def data_config(config: dict) -> DataConfig:

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from aniformer.cli import from_dict
+from aniformer.config import from_dict
 from aniformer.errors import UserError
 from aniformer.synth.stream import StreamPairs
 from pipeline.data.bank import Bank, check_bank_matches, load_bank
