@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import IO
 
 import matplotlib
 
@@ -61,35 +63,18 @@ def render_filmstrip(
         vertices = np.asarray(vertices, dtype=np.float64)
         count = len(vertices) if frames is None else min(frames, len(vertices))
         chosen = np.linspace(0, len(vertices) - 1, count).round().astype(int)
-        low, high = vertices.reshape(-1, 3).min(0), vertices.reshape(-1, 3).max(0)
-        centre, half = (low + high) / 2, (high - low).max() / 2
+        box = _sequence_box(vertices)
         for c, t in enumerate(chosen):
             left, bottom = c / columns, top - (r + 1) * top / len(rows)
             ax = fig.add_axes((left, bottom, 1 / columns, top / len(rows)), projection="3d")
-            triangles = vertices[t][faces]
-            ax.add_collection3d(Poly3DCollection(triangles, facecolors=_shaded_colours(triangles), linewidths=0))
-            ground = [[centre[0] - half, centre[0] + half], [high[1], high[1]], [low[2], low[2]]]
-            ax.plot(*ground, color="0.6", linewidth=0.5)
-            ax.set_xlim(centre[0] - half, centre[0] + half)
-            ax.set_ylim(centre[1] - half, centre[1] + half)
-            ax.set_zlim(centre[2] - half, centre[2] + half)
-            ax.set_box_aspect((1, 1, 1), zoom=1.6)
-            ax.set_proj_type("ortho")
-            ax.view_init(elev=view[0], azim=view[1])
-            ax.set_axis_off()
+            _draw_mesh(ax, vertices[t][faces], box, view, zoom=1.6)
             ax.text2D(0.5, 0.02, f"t={t}", transform=ax.transAxes, ha="center", fontsize=5)
             if c == 0:
                 ax.text2D(0.02, 0.92, label, transform=ax.transAxes, fontsize=6)
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".png", delete=False) as tmp:
-        try:
-            fig.savefig(tmp, format="png", dpi=100)
-        except BaseException:
-            os.unlink(tmp.name)
-            raise
-        finally:
-            plt.close(fig)
-    os.chmod(tmp.name, 0o644)  # NamedTemporaryFile creates 0600
-    os.replace(tmp.name, path)
+    try:
+        _replace_atomically(path, ".png", lambda f: fig.savefig(f, format="png", dpi=100))
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -112,8 +97,6 @@ def render_animation_gif(
     are drawn with a fixed random subset of them (matplotlib draws ~10^4-10^5 polygons per second).
     Written to a temporary name, then renamed.
     """
-    from PIL import Image
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     lengths = {len(v) for _, v, _ in panels}
@@ -127,30 +110,27 @@ def render_animation_gif(
     count = n if max_frames is None else max(1, min(max_frames, n))
     chosen = np.linspace(0, n - 1, count).round().astype(int)
     duration_ms = max(20, int(round(1000.0 / fps * n / count)))  # GIF delays are in 10 ms units
+    images = _gif_frames(panels, chosen, panel_px, view, progress)
+    _replace_atomically(path, ".gif", lambda f: images[0].save(
+        f, format="GIF", save_all=True, append_images=images[1:], duration=duration_ms, loop=0, optimize=False))
+    return path
+
+
+def _gif_frames(panels: list[tuple[str, np.ndarray, np.ndarray]], chosen: np.ndarray, panel_px: int,
+                view: tuple[float, float], progress) -> list:
+    """The ``chosen`` frames of ``panels`` drawn side by side, as PIL images; ``progress(1)`` after each."""
+    from PIL import Image
+
     inch = panel_px / 100.0
     fig = plt.figure(figsize=(len(panels) * inch, inch), dpi=100)
-    axes, limits = [], []
-    for p, (_, vertices, _) in enumerate(panels):
-        axes.append(fig.add_axes((p / len(panels), 0.0, 1 / len(panels), 1.0), projection="3d"))
-        flat = np.asarray(vertices, np.float64).reshape(-1, 3)
-        low, high = flat.min(0), flat.max(0)
-        limits.append(((low + high) / 2, (high - low).max() / 2, low, high))
+    axes = [fig.add_axes((p / len(panels), 0.0, 1 / len(panels), 1.0), projection="3d") for p in range(len(panels))]
+    boxes = [_sequence_box(vertices) for _, vertices, _ in panels]
     images = []
     try:
         for t in chosen:
-            for ax, (label, vertices, faces), (centre, half, low, high) in zip(axes, panels, limits):
+            for ax, (label, vertices, faces), box in zip(axes, panels, boxes):
                 ax.cla()
-                triangles = np.asarray(vertices[t], np.float64)[faces]
-                ax.add_collection3d(Poly3DCollection(triangles, facecolors=_shaded_colours(triangles), linewidths=0))
-                ax.plot([centre[0] - half, centre[0] + half], [high[1], high[1]], [low[2], low[2]],
-                        color="0.6", linewidth=0.5)
-                ax.set_xlim(centre[0] - half, centre[0] + half)
-                ax.set_ylim(centre[1] - half, centre[1] + half)
-                ax.set_zlim(centre[2] - half, centre[2] + half)
-                ax.set_box_aspect((1, 1, 1), zoom=1.5)
-                ax.set_proj_type("ortho")
-                ax.view_init(elev=view[0], azim=view[1])
-                ax.set_axis_off()
+                _draw_mesh(ax, np.asarray(vertices[t], np.float64)[faces], box, view, zoom=1.5)
                 ax.text2D(0.03, 0.93, label, transform=ax.transAxes, fontsize=8)
                 ax.text2D(0.5, 0.02, f"frame {t}", transform=ax.transAxes, ha="center", fontsize=6)
             fig.canvas.draw()
@@ -160,13 +140,37 @@ def render_animation_gif(
                 progress(1)
     finally:
         plt.close(fig)
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".gif", delete=False) as tmp:
+    return images
+
+
+def _sequence_box(vertices: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """(centre, half side, low, high) of the cube around a whole sequence: one axes limit for all its frames."""
+    flat = np.asarray(vertices, np.float64).reshape(-1, 3)
+    low, high = flat.min(0), flat.max(0)
+    return (low + high) / 2, (high - low).max() / 2, low, high
+
+
+def _draw_mesh(ax, triangles: np.ndarray, box: tuple, view: tuple[float, float], zoom: float) -> None:
+    """Shaded ``triangles`` on orthographic 3D axes limited to ``box``, a faint line at its lowest point (the ground)."""
+    centre, half, low, high = box
+    ax.add_collection3d(Poly3DCollection(triangles, facecolors=_shaded_colours(triangles), linewidths=0))
+    ax.plot([centre[0] - half, centre[0] + half], [high[1], high[1]], [low[2], low[2]], color="0.6", linewidth=0.5)
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
+    ax.set_zlim(centre[2] - half, centre[2] + half)
+    ax.set_box_aspect((1, 1, 1), zoom=zoom)
+    ax.set_proj_type("ortho")
+    ax.view_init(elev=view[0], azim=view[1])
+    ax.set_axis_off()
+
+
+def _replace_atomically(path: Path, suffix: str, save: Callable[[IO[bytes]], object]) -> None:
+    """``save(file)`` under a temporary name beside ``path``, then rename it: readers never see a partial file."""
+    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=suffix, delete=False) as tmp:
         try:
-            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration_ms,
-                           loop=0, optimize=False)
+            save(tmp)
         except BaseException:
             os.unlink(tmp.name)
             raise
-    os.chmod(tmp.name, 0o644)
+    os.chmod(tmp.name, 0o644)  # NamedTemporaryFile creates 0600
     os.replace(tmp.name, path)
-    return path
