@@ -576,14 +576,29 @@ def test_animate_bad_input_is_one_line_and_leaves_nothing(kind, inputs, tmp_path
         assert [p.name for p in (tmp_path / "out").iterdir()] == ["keep.txt"]
 
 
-def test_animate_unreadable_file(inputs, tmp_path, capsys):
-    if os.geteuid() == 0:
-        pytest.skip("root reads files regardless of permissions")
-    target = tmp_path / "t.ply"
-    target.write_bytes(Path(inputs["target"]).read_bytes())
+# Drops root's permission to read any file (CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH) for the process it runs.
+NO_DAC_OVERRIDE = ["setpriv", "--inh-caps=-dac_override,-dac_read_search",
+                   "--bounding-set=-dac_override,-dac_read_search"]
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".ply"])  # our OBJ reader, trimesh
+def test_animate_unreadable_file(inputs, tmp_path, suffix):
+    """A mode-0 target: exit 2, one "cannot read" line. As a real process, without root's override under root."""
+    target = tmp_path / f"t{suffix}"
+    if suffix == ".obj":
+        write_obj(target, *body(3))
+    else:
+        target.write_bytes(Path(inputs["target"]).read_bytes())
     target.chmod(0)
-    with pytest.raises(UserError, match="cannot read"):
-        animate_main(_argv({**inputs, "target": target}, tmp_path))
+    argv = [sys.executable, str(ROOT / "jobs" / "animate.py"), *map(str, _argv({**inputs, "target": target}, tmp_path))]
+    if os.geteuid() == 0:
+        assert shutil.which("setpriv"), "setpriv (util-linux) is needed to test unreadable files as root"
+        argv = NO_DAC_OVERRIDE + argv
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"error: {target}: cannot read mesh") and "Permission denied" in lines[0], proc.stderr
+    assert not (tmp_path / "out").exists()
 
 
 def test_animate_refuses_nonempty_out_then_overwrites(inputs, tmp_path):
