@@ -22,7 +22,7 @@ Every row of a batch is a pure function of its own ``numpy.random.Generator``: t
 vectorises the arithmetic. Joint angles follow ``mid + half * sin(u0 + a * sin(2 pi f t + phi))``,
 which stays inside ``[mid - half, mid + half]``, is smooth, and dwells near the limits as real
 extreme poses do; ``f`` (cycles per frame) times a per-window speed sets realistic tempos.
-Angles are the anatomical ones of ``motions._Clip`` (radians, left side; the right side mirrors).
+Angles are the anatomical ones of ``rig._Clip`` (radians, left side; the right side mirrors).
 """
 
 from __future__ import annotations
