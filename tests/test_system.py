@@ -12,8 +12,9 @@ One module-scoped cluster (the CI machine has 2 cores, so it is started once):
 - every node started with MLFLOW_TRACKING_URI in its environment, as cluster.yaml does, so jobs log
   to the server without being told (no runtime_env).
 
-Then, in order: what listens where, the token check, the tiny training job through `ray job submit`
-and a tiny sweep submitted as soon as the training job's mesh bank exists (both run at once), the
+Each test sets up what it needs through fixtures, so any one runs alone or in any order: what
+listens where, the token check, the tiny training job through `ray job submit` and a tiny sweep
+submitted as soon as the training job's mesh bank exists (both run at once, the `jobs` fixture), the
 MLflow UI in headless Chromium (the runs list; then the compare view of the sweep's trials, driven
 over the DevTools protocol as a user clicks through it, with the screenshot kept as docs/mlflow_ui.png
 when ANIFORMER_KEEP_SCREENSHOT names it), the server's backup on stop, and the local
@@ -169,6 +170,7 @@ def addresses(port: int, pids: set[int]) -> set[str]:
 
 
 WILDCARD = {"0.0.0.0", "::"}
+WORKER_PORTS = range(10002, 20000)  # Ray's default --min-worker-port/--max-worker-port; free_ports() stays above
 
 
 # ------------------------------------------------------------------ the cluster
@@ -185,9 +187,13 @@ class Cluster:
     dashboard_port: int
     ray_rpc_ports: set[int]  # Ray's token-authenticated RPC ports (all interfaces by Ray's design)
     metrics_ports: set[int]  # Ray's Prometheus exporters (all interfaces; read-only metrics)
+    # Ray's worker processes (actors, tasks, the dashboard agent's core worker) serve their RPC on a port
+    # of this range, on all interfaces; every node is given it (Ray's default, made explicit)
+    worker_ports: range = WORKER_PORTS
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     jobs: dict[str, str] = field(default_factory=dict)  # test name -> Ray job submission id
     logs: dict[str, Path] = field(default_factory=dict)
+    commands: dict[str, list[str]] = field(default_factory=dict)  # how each of `procs` was started
 
     def ray(self, *args: str, env: dict | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
         return subprocess.run([str(BIN / "ray"), *args], env=env or self.env, capture_output=True, text=True,
@@ -215,7 +221,10 @@ class Cluster:
 
 def _start(cluster: Cluster, name: str, cmd: list[str], **env: str) -> None:
     log = cluster.root / f"{name}.log"
+    if log.exists():  # a restart: keep the earlier log beside the new one
+        log.rename(log.with_suffix(f".{time.time():.0f}.log"))
     cluster.logs[name] = log
+    cluster.commands[name] = cmd
     with open(log, "w") as f:
         cluster.procs[name] = subprocess.Popen(cmd, env={**cluster.env, **env}, cwd=ROOT, stdout=f,
                                                stderr=subprocess.STDOUT, start_new_session=True)
@@ -250,6 +259,20 @@ def _wait(what: str, ok, cluster: Cluster, timeout: float = 240, every: float = 
         time.sleep(every)
 
 
+def readline(stream, timeout: float, what: str) -> str:
+    """One line of `stream` (a pipe: it has no read timeout), read by a thread; fails after `timeout`
+    seconds naming `what`. At EOF it is "" as readline gives it."""
+    import queue
+    import threading
+
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: lines.put(stream.readline()), daemon=True).start()
+    try:
+        return lines.get(timeout=max(timeout, 0.1))
+    except queue.Empty:
+        raise AssertionError(f"no line from {what} within {timeout:.0f} s") from None
+
+
 def _healthy(url: str) -> bool:
     try:
         with urllib.request.urlopen(f"{url}/health", timeout=5) as r:
@@ -279,7 +302,8 @@ def cluster(tmp_path_factory):
         _start(c, "mlflow", [sys.executable, "-m", "pipeline.mlflow_server", "--host", "127.0.0.1",
                              "--port", str(mlflow_port), "--store", str(root / "mlflow"),
                              "--backup", str(root / "mlflow-backup"), "--backup-every", "3600"])
-        common = ["--block", "--node-ip-address=127.0.0.1", f"--object-store-memory={OBJECT_STORE}"]
+        common = ["--block", "--node-ip-address=127.0.0.1", f"--object-store-memory={OBJECT_STORE}",
+                  f"--min-worker-port={WORKER_PORTS.start}", f"--max-worker-port={WORKER_PORTS.stop - 1}"]
         _start(c, "head", [str(BIN / "ray"), "start", "--head", *common, "--num-cpus=2", f"--temp-dir={temp_dirs[0]}",
                            f"--port={gcs}",
                            "--include-dashboard=true", "--dashboard-host=127.0.0.1", f"--dashboard-port={dashboard}",
@@ -310,7 +334,6 @@ def cluster(tmp_path_factory):
                 if proc.poll() is not None:
                     assert "timed out during startup" in c.tail(name), f"{name} exited:\n{c.tail(name)}"
                     _stop([proc], grace=5)
-                    c.logs[name].rename(c.logs[name].with_suffix(f".{time.time():.0f}.log"))
                     _start(c, name, cmd)
             return c.alive_nodes() == 3
 
@@ -382,7 +405,7 @@ def tags(run: dict) -> dict:
     return {t["key"]: t["value"] for t in run["data"].get("tags", [])}
 
 
-# ------------------------------------------------------------------ the tests, in order
+# ------------------------------------------------------------------ the tests (any order)
 
 
 def test_services_listen_only_where_intended(cluster):
@@ -392,10 +415,13 @@ def test_services_listen_only_where_intended(cluster):
     assert addresses(cluster.mlflow_port, ours) == {"127.0.0.1"}
     # Ray itself listens on all interfaces for its node-to-node RPC (GCS, raylet, agents' gRPC; token-
     # checked, next test) and its Prometheus metrics, whatever the flags (Ray 2.60): only on the ports
-    # we gave it. (On the cluster the security group keeps all of them inside the cluster.)
+    # we gave it. So do its worker processes (`ray::...`, once jobs have run: this test may come after
+    # them), each on a port of the worker range every node was given. (On the cluster the security
+    # group keeps all of them inside the cluster.)
     expected = cluster.ray_rpc_ports | cluster.metrics_ports
     unexpected = {f"{address}:{port} {command(pid)}" for (address, port), pid in listening_sockets(ours).items()
-                  if address in WILDCARD and port not in expected}
+                  if address in WILDCARD and port not in expected
+                  and not (port in cluster.worker_ports and command(pid).startswith("ray::"))}
     assert not unexpected, f"unexpected listeners on all interfaces: {unexpected}"
 
 
@@ -413,7 +439,21 @@ def test_a_wrong_token_is_refused(cluster):
     assert cluster.alive_nodes() == 3  # the right token still works
 
 
-def test_training_job_submitted_to_the_cluster(cluster):
+@dataclass
+class Jobs:
+    """The two jobs every later check looks at: the tiny training job and the tiny sweep, run at once."""
+
+    train_out: Path
+    train: tuple[str, str]  # (final status, output)
+    sweep_out: Path
+    sweep: tuple[str, str] | None  # None: not submitted (the training job made no mesh bank)
+
+
+@pytest.fixture(scope="module")
+def jobs(cluster) -> Jobs:
+    """Submit the tiny training job through `ray job submit`, then the tiny sweep as soon as the training
+    job's mesh bank exists (the two share the cluster, as they would on a real one); wait for both. Any
+    test that needs the runs asks for this, so each runs alone or in any order."""
     out = cluster.root / "runs" / "tiny"
     out.mkdir(parents=True)
     # A symlink planted in --out must be replaced, not written through (writes cannot escape --out).
@@ -421,15 +461,21 @@ def test_training_job_submitted_to_the_cluster(cluster):
     outside.write_text("untouched")
     (out / "last.pt").symlink_to(outside)
     submit(cluster, "train_job", "python", "jobs/train.py", "--config", "configs/tiny.yaml", "--out", str(out), *TRAIN)
-    # The sweep (next test) trains on the bank this job generates: start it as soon as the bank is
-    # complete, so that the two jobs share the cluster, as they would on a real one.
     _wait("the training job's mesh bank", lambda: (out / "bank" / "manifest.json").is_file()
           or job_status(cluster, "train_job") in DONE, cluster, timeout=600, every=3)
+    sweep_out = cluster.root / "runs" / "sweep"
     if (out / "bank" / "manifest.json").is_file():
         submit(cluster, "sweep_job", "python", "jobs/sweep.py", "--config", "configs/sweep_tiny.yaml",
-               "--out", str(cluster.root / "runs" / "sweep"), "--bank", str(out / "bank"), *SWEEP)
-    status, logs = wait_for_job(cluster, "train_job")
+               "--out", str(sweep_out), "--bank", str(out / "bank"), *SWEEP)
+    train = wait_for_job(cluster, "train_job")
+    sweep = wait_for_job(cluster, "sweep_job") if "sweep_job" in cluster.jobs else None
+    return Jobs(out, train, sweep_out, sweep)
+
+
+def test_training_job_submitted_to_the_cluster(cluster, jobs):
+    status, logs = jobs.train
     assert status == "SUCCEEDED", logs[-5000:]
+    out = jobs.train_out
     assert (out / "best.pt").is_file() and (out / "last.pt").exists()
     # Logged to the server through the nodes' environment (no runtime_env), metrics by the trainer.
     _, runs = mlflow_runs(cluster)
@@ -438,18 +484,18 @@ def test_training_job_submitted_to_the_cluster(cluster):
     assert {m["key"] for m in run["data"].get("metrics", [])} >= {"pmd_unseen", "loss"}
 
 
-def test_a_symlink_planted_in_out_is_replaced_not_written_through(cluster):
-    last = cluster.root / "runs" / "tiny" / "last.pt"
+def test_a_symlink_planted_in_out_is_replaced_not_written_through(cluster, jobs):
+    last = jobs.train_out / "last.pt"
     assert last.exists(), "the training job did not run"
     assert (cluster.root / "outside.txt").read_bytes() == b"untouched" and not last.is_symlink()
 
 
-def test_sweep_job_submitted_to_the_cluster(cluster):
-    assert "sweep_job" in cluster.jobs, "not submitted: the training job made no mesh bank"
-    status, logs = wait_for_job(cluster, "sweep_job")
+def test_sweep_job_submitted_to_the_cluster(cluster, jobs):
+    assert jobs.sweep is not None, "not submitted: the training job made no mesh bank"
+    status, logs = jobs.sweep
     assert status == "SUCCEEDED", logs[-5000:]
     assert f"== sweep sweep: {TRIALS} trials (" in logs and "| trial " in logs, logs[-5000:]  # its table, in the job's log
-    rows = list(csv.DictReader((cluster.root / "runs" / "sweep" / "summary.csv").open()))
+    rows = list(csv.DictReader((jobs.sweep_out / "summary.csv").open()))
     assert len(rows) == TRIALS and all(r["status"] in ("ok", "early_stopped", "adjusted_memory") for r in rows), rows
     _, runs = mlflow_runs(cluster)
     (parent,) = [r for r in runs if r["info"]["run_name"] == "sweep"]
@@ -458,7 +504,7 @@ def test_sweep_job_submitted_to_the_cluster(cluster):
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (.ci/run installs Debian's chromium)")
-def test_mlflow_ui_in_a_real_browser_shows_the_runs(cluster, tmp_path):
+def test_mlflow_ui_in_a_real_browser_shows_the_runs(cluster, jobs, tmp_path):
     experiment, runs = mlflow_runs(cluster)
     names = {r["info"]["run_name"] for r in runs}
     assert {"tiny", "sweep"} <= names
@@ -563,7 +609,7 @@ def in_chromium(profile: Path, script, timeout: float = 240):
     try:
         deadline, port = time.time() + 60, None
         while port is None:  # "DevTools listening on ws://127.0.0.1:PORT/devtools/browser/..."
-            line = browser.stderr.readline()
+            line = readline(browser.stderr, deadline - time.time(), "chromium's DevTools announcement")
             assert line or browser.poll() is None, "chromium exited before it listened"
             assert time.time() < deadline, "chromium did not start its DevTools server"
             found = re.search(r"DevTools listening on ws://[^:]+:(\d+)/", line)
@@ -685,7 +731,7 @@ async def _compare_view(tab: Tab, url: str, names: list[str], shot: Path) -> dic
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (.ci/run installs Debian's chromium)")
-def test_mlflow_compare_view_shows_the_sweeps_trials_in_a_real_browser(cluster, tmp_path):
+def test_mlflow_compare_view_shows_the_sweeps_trials_in_a_real_browser(cluster, jobs, tmp_path):
     """The compare view of the sweep's children (the link `pipeline.sweep_table.compare_link` prints), as a user
     reaches it: parallel coordinates over lambda_rec, lambda_m, lambda_a, T and pmd_unseen, the scatter of
     each against pmd_unseen; the values drawn are the runs' own. Screenshot: ANIFORMER_KEEP_SCREENSHOT
@@ -742,16 +788,25 @@ def _png_stats(path: Path) -> dict:
             "ink": float((rgb.min(axis=-1) < 240).mean())}  # share of pixels that are not (near) white
 
 
-def test_stopping_the_mlflow_server_leaves_a_backup_with_the_runs(cluster):
+def test_stopping_the_mlflow_server_leaves_a_backup_with_the_runs(cluster, jobs):
+    """Stopped, the server backs its store up; it is then started again on the same store, as the
+    cluster's head would restart it, so that the tests after this one find it (any order)."""
     server = cluster.procs["mlflow"]
     started = tree_pids(server.pid)
     os.kill(server.pid, signal.SIGTERM)  # the wrapper: stops its server, then backs the store up
-    server.wait(timeout=120)
-    assert server.returncode == 0, cluster.tail("mlflow")
-    assert not [pid for pid in started if _running(pid)], "the MLflow server left processes behind"
-    with sqlite3.connect(cluster.root / "mlflow-backup" / "mlflow.db") as db:
-        names = {name for (name,) in db.execute("select name from runs")}
-    assert {"tiny", "sweep"} <= names
+    try:
+        server.wait(timeout=120)
+        assert server.returncode == 0, cluster.tail("mlflow")
+        assert not [pid for pid in started if _running(pid)], "the MLflow server left processes behind"
+        with sqlite3.connect(cluster.root / "mlflow-backup" / "mlflow.db") as db:
+            names = {name for (name,) in db.execute("select name from runs")}
+        assert {"tiny", "sweep"} <= names
+    finally:
+        _stop([server], grace=30)
+        _start(cluster, "mlflow", cluster.commands["mlflow"])
+        _wait("the MLflow server, started again", lambda: _healthy(cluster.mlflow), cluster)
+    _, runs = mlflow_runs(cluster)  # the same store, served again
+    assert {"tiny", "sweep"} <= {r["info"]["run_name"] for r in runs}
 
 
 def _running(pid: int) -> bool:
@@ -776,7 +831,8 @@ def test_jobs_without_a_cluster_start_a_local_ray_on_localhost_with_token_auth(t
     proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, env=env, stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, start_new_session=True)
     try:
-        info = json.loads(proc.stdout.readline())
+        info = json.loads(readline(proc.stdout, 180, "the local Ray driver (its dashboard address)") or "null")
+        assert info, "the local Ray driver exited before it printed its dashboard address"
         port = int(info["dashboard"].rsplit(":", 1)[1])
         assert addresses(port, tree_pids(proc.pid)) == {"127.0.0.1"}
         assert info["token"], "the local Ray instance runs without token authentication"
