@@ -150,9 +150,22 @@ def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, ca
     for name in ("tiny", "NPT", "regression head", "copy-driver", "static target", "deformation transfer"):
         assert f"| {name} |" in md
     assert "| method | " + " | ".join(splits) + " |" in md and "noise.png" in md
-    assert (out / "noise.png").stat().st_size > 1000
     noise_rows = list(csv.DictReader((out / "noise.csv").open()))
-    assert len(noise_rows) == 6 * 3
+    methods = [r["method"] for r in rows]
+    assert [(r["method"], r["noise_m"]) for r in noise_rows] == [(m, level) for m in methods for level in ("0", "0.01", "0.02")]
+    noise = {(r["method"], float(r["noise_m"])): float(r["pmd_x1e4"]) for r in noise_rows}
+    for method, row in zip(methods, rows):  # the sweep's own pass over the pairs: at no noise, the table's PMD
+        assert noise[(method, 0.0)] == pytest.approx(float(row["unseen"]), rel=1e-4), method
+    # the static target never looks at the driver, so driver noise cannot change its PMD; copying the
+    # noisy driver gets worse with more noise
+    assert noise[("static target", 0.01)] == noise[("static target", 0.02)] == noise[("static target", 0.0)]
+    assert noise[("copy-driver", 0.0)] < noise[("copy-driver", 0.01)] < noise[("copy-driver", 0.02)]
+    from PIL import Image
+
+    with Image.open(out / "noise.png") as plot:  # the plot as plot_sweep draws it: 5 x 3.5 in at 120 dpi
+        assert plot.format == "PNG" and plot.size == (600, 420)
+        colours = plot.convert("RGB").getcolors(maxcolors=1 << 20)
+    assert len(colours) > 50, "a blank plot"  # six coloured lines, their markers, text, anti-aliasing
     assert "results.md" in printed and "MLflow run" in printed
 
     (run,) = mlflow.search_runs(experiment_names=["aniformer"], output_format="list")
