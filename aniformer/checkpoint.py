@@ -34,9 +34,9 @@ FILENAME = "checkpoint.pt"
 MAX_PARAMETERS = 2**30
 
 
-def checkpoint_spec(spec: str) -> str:
+def resolve_pretrained(reference: str) -> str:
     """A job's ``--checkpoint``: ``pretrained`` is the shipped model, anything else as given."""
-    return str(PRETRAINED) if spec == "pretrained" else spec
+    return str(PRETRAINED) if reference == "pretrained" else reference
 
 
 def unwrap(model: nn.Module) -> nn.Module:

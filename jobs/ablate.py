@@ -106,6 +106,20 @@ def _pair_samplers(data, bank_dir: Path, seed: int, pairs: int):
                                              eval_pairs=pairs)), available
 
 
+def _notes(specs: dict, ablation, pairs: int, seed: int) -> list[str]:
+    """The lines under the table: how every variant was trained and scored, then each one's overrides."""
+    from aniformer.memory import parameter_count
+
+    first = next(iter(specs.values()))
+    notes = [f"Every variant: {first.train.epochs} epochs x {first.data.pairs_per_epoch} pairs, batch "
+             f"{first.train.batch_size}; scored on {pairs} pairs per split (seed {seed}) with the vertex "
+             "shuffling it was trained with (the baselines: unshuffled). Variants (overrides of the base config"
+             + (f", after `{' '.join(ablation.common)}` for every row" if ablation.common else "") + "):", ""]
+    return notes + [f"- {row}: `{' '.join(ablation.variants[row]) or '(base config)'}` — "
+                    f"{spec.model_name}, {parameter_count(spec.model_name, spec.model):,} parameters, "
+                    f"shuffle `{spec.data.shuffle}`" for row, spec in specs.items()]
+
+
 @releases_locks  # the --out lock ends with main, however main is called
 def main(argv: list[str]) -> None:
     args = RunJobParser("ablate.py", __doc__, out_help="output directory (runs/, ablation.md/.csv/.json)",
@@ -121,7 +135,6 @@ def main(argv: list[str]) -> None:
 
     from aniformer.evaluate import table_csv, table_markdown
     from aniformer.files import atomic_path
-    from aniformer.memory import parameter_count
     from pipeline.ablation import log_pmd_table, slug
     from pipeline.cluster import connect
     from pipeline.console import quiet_ray
@@ -144,14 +157,7 @@ def main(argv: list[str]) -> None:
         seed, pairs = first.data.seed, ablation.pairs or first.data.eval_pairs
         print(f"evaluating {len(specs)} variants on {pairs} pairs per split ...", flush=True)
         table, splits = _evaluate(specs, checkpoints, bank, ablation, seed, pairs)
-        notes = [f"Every variant: {first.train.epochs} epochs x {first.data.pairs_per_epoch} pairs, batch "
-                 f"{first.train.batch_size}; scored on {pairs} pairs per split (seed {seed}) with the vertex "
-                 "shuffling it was trained with (the baselines: unshuffled). Variants (overrides of the base config"
-                 + (f", after `{' '.join(ablation.common)}` for every row" if ablation.common else "") + "):", ""]
-        notes += [f"- {row}: `{' '.join(ablation.variants[row]) or '(base config)'}` — "
-                  f"{specs[row].model_name}, {parameter_count(specs[row].model_name, specs[row].model):,} parameters, "
-                  f"shuffle `{specs[row].data.shuffle}`" for row in specs]
-        markdown = table_markdown(table, splits, notes=notes)
+        markdown = table_markdown(table, splits, notes=_notes(specs, ablation, pairs, seed))
         result = {"name": name, "bank": str(bank), "pairs": pairs, "seed": seed, "splits": splits, "table": table,
                   "variants": {row: {"overrides": list(ablation.variants[row]), "checkpoint": str(checkpoints[row]),
                                      "config": specs[row].to_dict()} for row in specs}}

@@ -201,39 +201,17 @@ def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local,
         (tmp / "animation.json").write_text(json.dumps(summary, indent=2) + "\n")
 
 
-@releases_locks
-def main(argv: list[str]) -> None:
-    args = parse_args(argv)
-    check_flags(args)
-    out = Path(args.out).expanduser().resolve()
-    from aniformer.checkpoint import checkpoint_spec  # torch: after the arguments are checked
-
-    checkpoint = checkpoint_spec(args.checkpoint)
-    claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--target": args.target, "--driving": args.driving})
-    device = resolve_device(args.device)
-
+def infer(args, model, state: dict, driving, driving_faces, target, target_faces, device):
+    """The target's animated frames (sliding windows of the model) and how they were made:
+    (frames, combine, windows, input_center, registrations)."""
     import numpy as np
     import torch
     from tqdm import tqdm
 
-    from aniformer.animate import (
-        animate_sequence,
-        load_driving,
-        num_windows,
-        root_motion,
-    )
-    from aniformer.checkpoint import model_from_checkpoint
+    from aniformer.animate import animate_sequence, num_windows
 
-    start = time.perf_counter()
-    files, target, target_faces, fps, name = load_inputs(args)  # bad input fails before any work
-    with tempfile.TemporaryDirectory(prefix="aniformer-animate-") as scratch:
-        model, state = model_from_checkpoint(resolve_checkpoint(checkpoint, Path(scratch)))
     config = model.config
     input_center = args.input_center or (state["config"].get("data") or {}).get("center", "mesh")
-    with tqdm(total=len(files), unit="frame", desc="load driving", disable=args.no_progress, file=sys.stderr) as bar:
-        driving, driving_faces = load_driving(files, args.max_vertices, args.unit, progress=bar.update)
-    loaded = time.perf_counter()
-
     faces, model_driving, model_target, registrations = model_inputs(args, state, config, driving, driving_faces,
                                                                       target, target_faces)
     model = functools.partial(model.to(device), faces=torch.from_numpy(np.asarray(faces, np.int64)).to(device))
@@ -246,19 +224,47 @@ def main(argv: list[str]) -> None:
                                   progress=bar.update, force=args.force)
     if "target" in registrations:
         result = registrations["target"].from_template(result)
-    inferred = time.perf_counter()
     if not np.isfinite(result).all():
         raise UserError(f"the model produced NaN or infinite coordinates ({args.checkpoint}: diverged weights?)")
+    return result, combine, total, input_center, registrations
+
+
+@releases_locks
+def main(argv: list[str]) -> None:
+    args = parse_args(argv)
+    check_flags(args)
+    out = Path(args.out).expanduser().resolve()
+    from aniformer.checkpoint import resolve_pretrained  # torch: after the arguments are checked
+
+    checkpoint = resolve_pretrained(args.checkpoint)
+    claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--target": args.target, "--driving": args.driving})
+    device = resolve_device(args.device)
+
+    from tqdm import tqdm
+
+    from aniformer.animate import load_driving, root_motion
+    from aniformer.checkpoint import model_from_checkpoint
     from aniformer.mesh import center_bbox
 
+    start = time.perf_counter()
+    files, target, target_faces, fps, name = load_inputs(args)  # bad input fails before any work
+    with tempfile.TemporaryDirectory(prefix="aniformer-animate-") as scratch:
+        model, state = model_from_checkpoint(resolve_checkpoint(checkpoint, Path(scratch)))
+    with tqdm(total=len(files), unit="frame", desc="load driving", disable=args.no_progress, file=sys.stderr) as bar:
+        driving, driving_faces = load_driving(files, args.max_vertices, args.unit, progress=bar.update)
+    loaded = time.perf_counter()
+    result, combine, total, input_center, registrations = infer(args, model, state, driving, driving_faces, target,
+                                                                target_faces, device)
+    inferred = time.perf_counter()
     local = center_bbox(result)
     translation = None if args.center else root_motion(driving, local, target)
 
+    window = model.config.window
     summary = {
         "checkpoint": str(args.checkpoint), "target": str(args.target), "driving": str(args.driving),
         "name": name, "frames": len(result), "fps": fps, "unit": args.unit,
         "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
-        "window": config.window, "combine": combine, "windows": total, "input_center": input_center,
+        "window": window, "combine": combine, "windows": total, "input_center": input_center,
         "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template)}
                        for role, fit in registrations.items()},
         "output_centred": args.center,
@@ -268,7 +274,7 @@ def main(argv: list[str]) -> None:
     write_outputs(out, args, summary, driving, driving_faces, local, translation, target_faces)
     seconds = time.perf_counter() - start
     print(f"animated {len(result)} frames ({target.shape[0]:,}-vertex target, {driving.shape[1]:,}-vertex driver, "
-          f"T={config.window}, {total} windows, combine={combine}) in {seconds:.1f} s "
+          f"T={window}, {total} windows, combine={combine}) in {seconds:.1f} s "
           f"(inference {inferred - loaded:.1f} s)")
     print(f"frames: {out / 'frames'}/ ({len(result)} OBJ)")
     if not args.no_glb:

@@ -80,13 +80,13 @@ def _model_label(state: dict, model) -> str:
     return "regression head" if model.config.head == "regression" else "AniFormer"
 
 
-def _default_name(spec: str) -> str:
-    if spec.startswith("models:/"):  # a registered model: models:/aniformer/3 -> aniformer-3
-        return re.sub(r"[/@]", "-", spec.removeprefix("models:/").rstrip("/"))
-    match = RUN_ID.fullmatch(spec)
-    if match and not Path(spec).exists():
+def _default_name(reference: str) -> str:
+    if reference.startswith("models:/"):  # a registered model: models:/aniformer/3 -> aniformer-3
+        return re.sub(r"[/@]", "-", reference.removeprefix("models:/").rstrip("/"))
+    match = RUN_ID.fullmatch(reference)
+    if match and not Path(reference).exists():
         return match.group(1)[:8]
-    path = Path(spec).resolve()
+    path = Path(reference).resolve()
     return (path.parent.name if path.is_file() else path.name) or "checkpoint"
 
 
@@ -185,74 +185,80 @@ def write_results(out: Path, args: argparse.Namespace, markdown: str, result: di
     return run_id
 
 
-@releases_locks
-def main(argv: list[str]) -> None:
-    args = parse_args(argv)
-    levels, compare = check_flags(args)
-    out = Path(args.out).expanduser().resolve()
-    from aniformer.checkpoint import checkpoint_spec  # torch: after the arguments are checked
+def load_models(checkpoint: str, compare: list) -> tuple[Path, object, dict, list]:
+    """(the checkpoint's path, its model, its state, the --compare rows (label, model, state, reference))."""
+    from aniformer.checkpoint import model_from_checkpoint, resolve_pretrained
 
-    checkpoint = checkpoint_spec(args.checkpoint)
-    claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--compare": [checkpoint_spec(spec) for _, spec in compare],
-                                       "--bank": args.bank or Path(checkpoint).expanduser().parent / "bank"})
-    device = resolve_device(args.device)
-
-    from aniformer.checkpoint import model_from_checkpoint
-    from aniformer.evaluate import (
-        Samplers,
-        copy_driver_contender,
-        evaluate_pairs,
-        model_contender,
-        noise_sweep,
-        static_target_contender,
-        transfer_contender,
-    )
-    start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="aniformer-eval-") as scratch:
         ckpt_path = resolve_checkpoint(checkpoint, Path(scratch))
         model, state = model_from_checkpoint(ckpt_path)
         others = []
-        for label, spec in compare:
-            other, other_state = model_from_checkpoint(resolve_checkpoint(checkpoint_spec(spec), Path(scratch)))
-            others.append((label, other, other_state, spec))
+        for label, reference in compare:
+            other, other_state = model_from_checkpoint(resolve_checkpoint(resolve_pretrained(reference), Path(scratch)))
+            others.append((label, other, other_state, reference))
+    return ckpt_path, model, state, others
 
-    config = state["config"]
-    pairs, seed, (all_splits, descriptions, shuffle, make_sampler, notes, data_label), splits, noise_split = \
-        choose_data(args, ckpt_path, config, levels)
-    name = args.name or _default_name(args.checkpoint)
-    rows = [(args.name or _model_label(state, model), model)] + [(label, m) for label, m, _, _ in others]
+
+def contenders_of(args, rows: list, window: int, device):
+    """The rows' models, then (unless --no-copy-driver) the three baselines, under unique names."""
+    from aniformer.evaluate import copy_driver_contender, model_contender, static_target_contender, transfer_contender
+
     baselines = ["copy-driver", "static target", "deformation transfer"]
     labels = [r[0] for r in rows] + ([] if args.no_copy_driver else baselines)
     if len(set(labels)) != len(labels):
         raise UserError(f"row names must be unique, got {', '.join(labels)}")
     contenders = [model_contender(label, m, device) for label, m in rows]
     if not args.no_copy_driver:  # one topology per bank or stream: driver and target always correspond
-        contenders += [copy_driver_contender(model.config.window), static_target_contender(model.config.window),
-                       transfer_contender(model.config.window)]
+        contenders += [copy_driver_contender(window), static_target_contender(window), transfer_contender(window)]
+    return contenders
 
-    samplers = Samplers(make_sampler, shuffle)
+
+def score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_split, pairs, seed, device):
+    """({row: {split: per-pair PMDs}}, the noise sweep or None), with a progress bar on stderr."""
     from tqdm import tqdm
 
-    if args.targets is not None:
-        from aniformer.evaluate import target_pmds
+    from aniformer.evaluate import Samplers, evaluate_pairs, noise_sweep, target_pmds
 
-        bar = tqdm(total=pairs, unit="pair", desc="evaluate targets", disable=args.no_progress, file=sys.stderr)
-        scores = target_pmds(model, make_sampler(model.config.window, "none"), args.target_split, splits, pairs=pairs,
-                             device=device, batch_size=args.batch_size, progress=lambda: bar.update(1))
-        scores = {rows[0][0]: scores.pop("model"), **scores}
-    else:
-        steps = len(contenders) * (len(splits) + (len(levels) if levels else 0))
-        bar = tqdm(total=steps, unit="split", desc="evaluate", disable=args.no_progress, file=sys.stderr)
+    model = rows[0][1]
+    if args.targets is not None:
+        with tqdm(total=pairs, unit="pair", desc="evaluate targets", disable=args.no_progress, file=sys.stderr) as bar:
+            scores = target_pmds(model, make_sampler(model.config.window, "none"), args.target_split, splits,
+                                 pairs=pairs, device=device, batch_size=args.batch_size, progress=lambda: bar.update(1))
+        return {rows[0][0]: scores.pop("model"), **scores}, None
+    samplers = Samplers(make_sampler, shuffle)
+    steps = len(contenders) * (len(splits) + (len(levels) if levels else 0))
+    with tqdm(total=steps, unit="split", desc="evaluate", disable=args.no_progress, file=sys.stderr) as bar:
         scores = evaluate_pairs(contenders, samplers, splits, pairs=pairs, batch_size=args.batch_size, seed=seed,
                                 progress=lambda *_: bar.update(1))
+        sweep = None if levels is None else noise_sweep(contenders, samplers, noise_split, levels, pairs=pairs,
+                                                        batch_size=args.batch_size, seed=seed,
+                                                        progress=lambda *_: bar.update(1))
+    return scores, sweep
+
+
+@releases_locks
+def main(argv: list[str]) -> None:
+    args = parse_args(argv)
+    levels, compare = check_flags(args)
+    out = Path(args.out).expanduser().resolve()
+    from aniformer.checkpoint import resolve_pretrained  # torch: after the arguments are checked
+
+    checkpoint = resolve_pretrained(args.checkpoint)
+    claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--compare": [resolve_pretrained(c) for _, c in compare],
+                                       "--bank": args.bank or Path(checkpoint).expanduser().parent / "bank"})
+    device = resolve_device(args.device)
+    start = time.perf_counter()
+    ckpt_path, model, state, others = load_models(checkpoint, compare)
+    config = state["config"]
+    pairs, seed, (all_splits, descriptions, shuffle, make_sampler, notes, data_label), splits, noise_split = \
+        choose_data(args, ckpt_path, config, levels)
+    name = args.name or _default_name(args.checkpoint)
+    rows = [(args.name or _model_label(state, model), model)] + [(label, m) for label, m, _, _ in others]
+    contenders = contenders_of(args, rows, model.config.window, device)
+    scores, sweep = score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_split, pairs, seed, device)
     table = {name: {split: float(v.mean()) for split, v in row.items()} for name, row in scores.items()}
     spread = {name: {split: float(v.std(ddof=1)) if len(v) > 1 else float("nan") for split, v in row.items()}
               for name, row in scores.items()}
-    sweep = None
-    if levels is not None:
-        sweep = noise_sweep(contenders, samplers, noise_split, levels, pairs=pairs, batch_size=args.batch_size,
-                            seed=seed, progress=lambda *_: bar.update(1))
-    bar.close()
     seconds = time.perf_counter() - start
 
     markdown, result = results_report(args, state, table, spread, sweep, levels, descriptions, notes, data_label,

@@ -20,6 +20,28 @@ from aniformer.cli import RunJobParser, exit_on_sigterm, load_config, run
 from aniformer.files import releases_locks
 
 
+def report(name: str, rows: list, counts: dict, summary, best: dict | None, unfinished: list, parent) -> None:
+    """The sweep's closing lines: trial counts, the summary file, the best trial, where to compare them."""
+    from pipeline.sweep_table import compare_link
+    from pipeline.tracking import ui_hint
+
+    shown = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
+    print(f"sweep {name}: {len(rows)} trials ({shown})")
+    print(f"summary: {summary}")
+    if best and not unfinished:
+        print(f"best trial {best['trial_id']}: PMD unseen {best['best_pmd_unseen']} (x1e-4), "
+              f"rec={best['rec']:.3g} motion={best['motion']:.3g} appearance={best['appearance']:.3g} "
+              f"window={best['window']}")
+    print(f"MLflow parent run: {parent.run_id} in {parent.uri}")
+    print(f"  compare trials: {ui_hint(parent.uri)}")
+    link = compare_link(parent, rows)
+    if link:
+        print(f"  its trials side by side: {link}")
+    if unfinished:
+        print(f"interrupted: {len(unfinished)} trial(s) unfinished; run the same command again to resume",
+              file=sys.stderr)
+
+
 @releases_locks  # the --out lock ends with main, however main is called
 def main(argv: list[str]) -> None:
     args = RunJobParser("sweep.py", __doc__, out_help="output directory (summary.csv, tune/, trials/)",
@@ -36,8 +58,8 @@ def main(argv: list[str]) -> None:
 
     from pipeline.cluster import connect
     from pipeline.data import prepare_bank
-    from pipeline.sweep_table import SweepReporter, best_row, compare_link, record_results, summarize, write_summary
-    from pipeline.tracking import start_job_run, ui_hint
+    from pipeline.sweep_table import SweepReporter, best_row, record_results, summarize, write_summary
+    from pipeline.tracking import start_job_run
     from pipeline.tune import build_tuner, end_interrupted_runs, experiment_exists, unfinished_trials
 
     connect()
@@ -69,21 +91,8 @@ def main(argv: list[str]) -> None:
         raise
     finally:
         parent.end(status)
-    shown = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
-    print(f"sweep {name}: {len(rows)} trials ({shown})")
-    print(f"summary: {summary}")
-    if best and not unfinished:
-        print(f"best trial {best['trial_id']}: PMD unseen {best['best_pmd_unseen']} (x1e-4), "
-              f"rec={best['rec']:.3g} motion={best['motion']:.3g} appearance={best['appearance']:.3g} "
-              f"window={best['window']}")
-    print(f"MLflow parent run: {parent.run_id} in {parent.uri}")
-    print(f"  compare trials: {ui_hint(parent.uri)}")
-    link = compare_link(parent, rows)
-    if link:
-        print(f"  its trials side by side: {link}")
+    report(name, rows, counts, summary, best, unfinished, parent)
     if unfinished:
-        print(f"interrupted: {len(unfinished)} trial(s) unfinished; run the same command again to resume",
-              file=sys.stderr)
         sys.exit(1)
 
 

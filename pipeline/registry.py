@@ -155,26 +155,26 @@ def log_best_model(tracker: Tracker, checkpoint: Path, register_as: str | None) 
     return f"models:/{register_as}/{info.registered_model_version}"
 
 
-def resolve_checkpoint(spec: str, scratch: Path) -> Path:
+def resolve_checkpoint(reference: str, scratch: Path) -> Path:
     """A checkpoint path from a registered model URI (its checkpoint artifact, downloaded into
     `scratch`), else from a file, directory or run id (`pipeline.tracking.resolve_checkpoint`)."""
-    if not spec.startswith("models:/"):
-        return resolve_run_checkpoint(spec, scratch)
-    if MODEL_URI.fullmatch(spec) is None:
-        raise UserError(f"{spec}: not a registered model URI (models:/NAME/VERSION, models:/NAME/latest "
+    if not reference.startswith("models:/"):
+        return resolve_run_checkpoint(reference, scratch)
+    if MODEL_URI.fullmatch(reference) is None:
+        raise UserError(f"{reference}: not a registered model URI (models:/NAME/VERSION, models:/NAME/latest "
                         "or models:/NAME@ALIAS)")
     quiet_mlflow()
     import mlflow
     from mlflow.models import Model
 
-    uri = existing_store(spec)
+    uri = existing_store(reference)
     try:
         with environment(**NO_PROGRESS_BAR):
-            local = Path(mlflow.artifacts.download_artifacts(artifact_uri=spec.rstrip("/"), tracking_uri=uri,
+            local = Path(mlflow.artifacts.download_artifacts(artifact_uri=reference.rstrip("/"), tracking_uri=uri,
                                                              registry_uri=uri, dst_path=str(scratch / "model")))
         checkpoint = Model.load(local).flavors["python_function"]["artifacts"][CHECKPOINT_KEY]["path"]
     except Exception as e:  # no such model or version, not an AniFormer model, unreachable server: one line
-        raise UserError(f"{spec}: cannot load this registered model from {uri} ({_first_line(e)})") from None
+        raise UserError(f"{reference}: cannot load this registered model from {uri} ({_first_line(e)})") from None
     return local / checkpoint
 
 

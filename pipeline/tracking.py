@@ -301,13 +301,13 @@ def existing_store(what: str) -> str:
     return uri
 
 
-def resolve_checkpoint(spec: str, scratch: Path) -> Path:
+def resolve_checkpoint(reference: str, scratch: Path) -> Path:
     """A checkpoint path from a file/directory, or an MLflow run id (downloads checkpoints/best.pt)."""
-    path = Path(os.path.expanduser(spec))
-    match = RUN_ID.fullmatch(spec)
+    path = Path(os.path.expanduser(reference))
+    match = RUN_ID.fullmatch(reference)
     if path.exists() or match is None:
         if not path.exists():
-            raise UserError(f"checkpoint not found: {spec} (give a checkpoint file or an MLflow run id)")
+            raise UserError(f"checkpoint not found: {reference} (give a checkpoint file or an MLflow run id)")
         return path
     quiet_mlflow()
     import mlflow

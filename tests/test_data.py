@@ -230,13 +230,13 @@ def test_ground_truth_is_anny_target_shape_with_driving_pose(tiny_loaded):
 
 def test_target_is_target_identity_at_a_frame_of_a_split_motion(tiny_loaded):
     s = sampler(tiny_loaded, shuffle="none", center="none")
-    specs = s.specs("train", 0)
+    table = s.pair_table("train", 0)
     b = s.batch("train", 0, np.arange(16))
     train_motions = set(tiny_loaded.manifest["splits"]["train"]["motions"])
     for k in range(16):
-        seq = tiny_loaded.sequence(int(specs["target_identity"][k]), int(specs["target_pose_motion"][k]))
-        np.testing.assert_array_equal(b["target"][k], seq[specs["target_pose_frame"][k]])
-        assert int(specs["target_pose_motion"][k]) in train_motions
+        seq = tiny_loaded.sequence(int(table["target_identity"][k]), int(table["target_pose_motion"][k]))
+        np.testing.assert_array_equal(b["target"][k], seq[table["target_pose_frame"][k]])
+        assert int(table["target_pose_motion"][k]) in train_motions
 
 
 def test_pairs_are_seeded_by_seed_and_epoch(tiny_loaded):
@@ -266,7 +266,7 @@ def test_shuffling_keeps_faces_consistent_and_target_aligned(tiny_loaded, mode):
 
     plain = sampler(tiny_loaded, shuffle="none").batch("seen", 0, np.arange(4))
     mixed = sampler(tiny_loaded, shuffle=mode).batch("seen", 0, np.arange(4))
-    specs = sampler(tiny_loaded, shuffle=mode).specs("seen", 0)
+    table = sampler(tiny_loaded, shuffle=mode).pair_table("seen", 0)
     faces = tiny_loaded.faces
     V = tiny_loaded.num_vertices
     for k in range(4):
@@ -277,7 +277,7 @@ def test_shuffling_keeps_faces_consistent_and_target_aligned(tiny_loaded, mode):
         for t in range(mixed["ground_truth"].shape[1]):
             assert _triangles(mixed["ground_truth"][k, t], tf) == _triangles(plain["ground_truth"][k, t], faces)
         # target and ground truth share one permutation, the one aniformer.mesh.shuffle_vertices applies
-        rng = np.random.default_rng(int(specs["perm_seed"][k]))
+        rng = np.random.default_rng(int(table["perm_seed"][k]))
         perm = rng.permutation(V)
         v, f = shuffle_vertices(plain["target"][k], faces, perm)
         np.testing.assert_array_equal(mixed["target"][k], v)

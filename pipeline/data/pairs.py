@@ -28,7 +28,7 @@ def pair_source(cfg: DataConfig, bank_dir: str | os.PathLike | None):
 class PairSampler:
     """Assembles (driving window, target, ground truth) pairs from a bank in memory; no Ray.
 
-    ``specs(split, epoch, n)`` draws the pair table of an epoch (a pure function of seed, split and
+    ``pair_table(split, epoch, n)`` draws the pair table of an epoch (a pure function of seed, split and
     epoch); ``batch(split, epoch, indices)`` assembles pairs ``indices`` of it as numpy arrays.
     """
 
@@ -122,7 +122,7 @@ class PairSampler:
     def default_pairs(self, split: str) -> int:
         return self.pairs_per_epoch if split == "train" else self.eval_pairs
 
-    def specs(self, split: str, epoch: int = 0, n: int | None = None) -> dict[str, np.ndarray]:
+    def pair_table(self, split: str, epoch: int = 0, n: int | None = None) -> dict[str, np.ndarray]:
         """The pair table of one epoch: which driving window, target pose and permutation seed."""
         n = self.default_pairs(split) if n is None else int(n)
         key = (split, int(epoch), n)
@@ -160,15 +160,15 @@ class PairSampler:
 
     def batch(self, split: str, epoch: int, indices: Sequence[int] | np.ndarray, n: int | None = None) -> dict:
         """Assemble pairs ``indices`` of an epoch: a dict of numpy arrays with a leading batch axis."""
-        spec = self.specs(split, epoch, n)
+        table = self.pair_table(split, epoch, n)
         idx = np.asarray(indices, np.int64)
-        motion, start = spec["motion"][idx], spec["start"][idx]
-        target = spec["target_identity"][idx]
+        motion, start = table["motion"][idx], table["start"][idx]
+        target = table["target_identity"][idx]
         T, verts, faces = self.window, self.bank.vertices, self.bank.faces
         steps = np.arange(T)
         drv_rows = self.first_row[self.seq_of[self.driver[motion], motion]][:, None] + start[:, None] + steps
         gt_rows = self.first_row[self.seq_of[target, motion]][:, None] + start[:, None] + steps
-        pose_rows = self.first_row[self.seq_of[target, spec["target_pose_motion"][idx]]] + spec["target_pose_frame"][idx]
+        pose_rows = self.first_row[self.seq_of[target, table["target_pose_motion"][idx]]] + table["target_pose_frame"][idx]
         B, V = len(idx), verts.shape[1]
         if self.shuffle == "none":
             driving, ground_truth, target_mesh = verts[drv_rows], verts[gt_rows], verts[pose_rows]
@@ -176,7 +176,7 @@ class PairSampler:
         else:
             perms = np.empty((B, V), np.int64)
             drv_perms = np.empty((B, V), np.int64) if self.shuffle == "both" else None
-            for b, s in enumerate(spec["perm_seed"][idx]):
+            for b, s in enumerate(table["perm_seed"][idx]):
                 rng = np.random.default_rng(int(s))
                 perms[b] = rng.permutation(V)
                 if drv_perms is not None:
@@ -199,5 +199,5 @@ class PairSampler:
             "target": np.ascontiguousarray(target_mesh, np.float32),
             "ground_truth": np.ascontiguousarray(ground_truth, np.float32),
             "target_faces": np.ascontiguousarray(target_faces, np.int64),
-            **{k: spec[k][idx] for k in ("index", "epoch", "motion", "start", "driving_identity", "target_identity")},
+            **{k: table[k][idx] for k in ("index", "epoch", "motion", "start", "driving_identity", "target_identity")},
         }
