@@ -112,9 +112,9 @@ def check_inference_time(model: Callable, windows: int, vertices: tuple[int, int
 # --------------------------------------------------------------------------------------------
 
 
-def driving_files(spec: str | os.PathLike) -> list[Path]:
+def driving_files(source: str | os.PathLike) -> list[Path]:
     """The frame files of a driving sequence: a directory's mesh files, or a glob; natural order."""
-    path = Path(os.path.expanduser(str(spec)))
+    path = Path(os.path.expanduser(str(source)))
     if path.is_dir():
         files = [p for p in path.iterdir() if p.suffix.lower() in MESH_SUFFIXES and not p.name.startswith(".")]
         if not files:
@@ -122,7 +122,7 @@ def driving_files(spec: str | os.PathLike) -> list[Path]:
     else:
         files = [Path(p) for p in glob.glob(str(path))]
         if not files:
-            raise MeshError(f"{spec}: no such directory, and no file matches it as a glob")
+            raise MeshError(f"{source}: no such directory, and no file matches it as a glob")
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
