@@ -47,7 +47,7 @@ def main(argv: list[str]) -> None:
     args = RunJobParser("sweep.py", __doc__, out_help="output directory (summary.csv, tune/, trials/)",
                         name_help="sweep name: MLflow parent run and Tune experiment").parse_args(argv)
     config = load_config(args.config, args.overrides)
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
     from pipeline.tune import apply_params, split_config
 
     base, sweep = split_config(config)

@@ -35,7 +35,7 @@ def main(argv: list[str]) -> None:
     args = parser.parse_args(argv)
     config = load_config(args.config, args.overrides)
     from pipeline.registry import check_registered_name
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
 
     spec = RunSpec.from_config(config)  # bad config: one line before anything starts
     register_as = None if args.no_register else check_registered_name(args.register_as)

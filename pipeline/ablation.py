@@ -88,7 +88,7 @@ def load_ablation_config(path: str | os.PathLike, overrides: Sequence[str] = ())
 def variant_specs(base: dict, ablation: AblationConfig) -> dict:
     """{row name: RunSpec} of every variant; `UserError` naming the variant if one is invalid or
     changes the training budget."""
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
 
     reference = RunSpec.from_config(base)
     specs = {}

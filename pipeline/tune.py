@@ -47,8 +47,9 @@ from aniformer.config import Section, from_dict
 from aniformer.errors import UserError
 from aniformer.memory import plan_batch
 from pipeline.console import Console
+from pipeline.run_spec import RunSpec, resolve_precision
 from pipeline.tracking import find_job_run, start_job_run, tracking_uri
-from pipeline.train import RunSpec, build_trainer, resolve_precision, train_func
+from pipeline.train import build_trainer, train_func
 
 STATUSES = ("ok", "adjusted_memory", "skipped_memory", "early_stopped", "failed")
 SEARCHES = ("optuna", "random")

@@ -42,13 +42,13 @@ def test_shipped_ablation_config_has_the_paper_rows_and_one_budget():
     # the paper's per-frame embedding everywhere but in our switch's row; the full row is the default config
     assert full.model.temporal == "embedding" == specs["no head"].model.temporal
     assert specs["temporal attention"].model.temporal == "attention"
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
     assert full.to_dict() == RunSpec.from_config(default).to_dict()
 
 
 def test_shipped_seeds_config_repeats_the_default_and_varies_only_the_seed():
     from pipeline.ablation import load_ablation_config, variant_specs
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
 
     specs = variant_specs(*load_ablation_config(ROOT / "configs/seeds.yaml"))
     default = RunSpec.from_config(yaml.safe_load((ROOT / "configs/bank.yaml").read_text())).to_dict()
@@ -140,8 +140,17 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address)
     assert {"seen", "unseen"} <= set(splits)
     for row in rows.values():
         assert all(float(row[s]) > 0 for s in splits), row
-    for variant in ("aniformer_full", "cross_shuffle_both"):
-        assert (out / "runs" / variant / "best.pt").is_file()
+    from aniformer.checkpoint import load_checkpoint
+    from aniformer.cli import load_config
+    from pipeline.train import RunSpec
+
+    tiny = RunSpec.from_config(load_config(ROOT / "configs/tiny.yaml"))
+    # each variant's checkpoint was trained (1 epoch) with that variant's overrides, the base with none
+    for variant, trained_with in {"aniformer_full": (tiny.model.attention, tiny.data.shuffle),
+                                  "cross_shuffle_both": ("cross", "both")}.items():
+        state = load_checkpoint(out / "runs" / variant / "best.pt")
+        assert (state["epoch"], state["config"]["model"]["attention"], state["config"]["data"]["shuffle"]) == (
+            1, *trained_with), variant
     assert "| AniFormer (full) |" in (out / "ablation.md").read_text()
 
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")

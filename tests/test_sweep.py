@@ -30,7 +30,7 @@ CONFIG = ROOT / "configs/sweep_tiny.yaml"
 
 
 def test_sweep_config_parses_and_rejects_bad_sections():
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
     from pipeline.tune import apply_params, split_config
 
     base, sweep = split_config(load_config(CONFIG))
@@ -61,7 +61,7 @@ def test_points_are_completed_for_the_search():
 
 
 def test_gate_adjusts_then_skips_oversized_trials():
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
     from pipeline.tune import apply_params, gate, split_config
 
     base, sweep = split_config(load_config(CONFIG, ["sweep.memory_limit_gb=1.2"]))

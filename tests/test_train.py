@@ -295,7 +295,7 @@ def test_training_reads_pairs_in_id_order(tmp_path, tiny_bank, repo_root):
     """build_trainer's ingest preserves block order: the same config and seed give the same batches
     (and so the same model), however Ray Data's tasks happen to finish."""
     from aniformer.cli import load_config
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
 
     # 2 epochs x 3,000 pairs: several blocks and assembly tasks, which finish in any order
     spec = RunSpec.from_config(load_config(repo_root / "configs/tiny.yaml", ["train.epochs=2", "data.pairs_per_epoch=3000"]))
@@ -331,7 +331,8 @@ def test_a_unicode_named_run_resumes_past_a_truncated_checkpoint_reading_only_un
     skipped), and the real loop trains on from there."""
     from aniformer.cli import load_config
     from pipeline.checkpoints import resume_epoch
-    from pipeline.train import RunSpec, ray_run_name
+    from pipeline.run_spec import RunSpec
+    from pipeline.train import ray_run_name
 
     out = tmp_path / "ünï cødé"
     ray_name = ray_run_name(out.name)
