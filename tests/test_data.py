@@ -85,7 +85,7 @@ def test_every_section_goes_to_its_dict_and_back_unchanged(config):
     """One config <-> dict path (aniformer.config): YAML lists become tuples inside, lists again outside."""
     import yaml
 
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
 
     spec = RunSpec.from_config(load_config(ROOT / "configs" / config))
     as_dict = spec.to_dict()
@@ -95,7 +95,7 @@ def test_every_section_goes_to_its_dict_and_back_unchanged(config):
 
 
 def test_the_window_is_set_once_in_data():
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
 
     assert RunSpec.from_config(load_config(TINY)).model.window == 3  # tiny.yaml's model section has none
     assert RunSpec.from_config(load_config(TINY, ["data.window=5"])).model.window == 5
@@ -113,7 +113,7 @@ def test_heldout_actions_as_a_count_is_seeded():
 def test_splits_disjoint_and_complete(config):
     cfg = data.data_config(load_config(ROOT / "configs" / config))
     plan = data.plan_bank(cfg)
-    ids, motions, splits = plan["identities"], plan["motions"], plan["splits"]
+    ids, motions, splits = plan.identities, plan.motions, plan.splits
     role = {i["id"]: (i["role"], i["split"]) for i in ids}
     # identities: drivers seen/unseen and targets train/test partition the identities
     groups = [
@@ -131,13 +131,20 @@ def test_splits_disjoint_and_complete(config):
     seen_motion_sets = [set(s["motions"]) for name, s in splits.items() if name != "seen"]
     assert sum(map(len, seen_motion_sets)) == len(motions) == len(set().union(*seen_motion_sets))
     assert splits["seen"]["motions"] == splits["train"]["motions"]
-    assert len(splits["train"]["motions"]) > 0
+    # train and unseen split the seen drivers' instances of the regular actions: the documented share
+    # (unseen_instance_fraction, at least one when positive, never all) is unseen, the rest trains
+    _, heldout = cfg.resolved_actions()
+    eligible = {m["id"] for m in motions if role[m["driver"]] == ("driver", "seen") and m["action"] not in heldout}
+    assert set(splits["train"]["motions"]) | set(splits["unseen"]["motions"]) == eligible
+    n, fraction = len(eligible), cfg.unseen_instance_fraction
+    unseen = min(n - 1, max(1, round(fraction * n))) if fraction > 0 and n >= 2 else 0
+    assert (len(splits["train"]["motions"]), len(splits["unseen"]["motions"])) == (n - unseen, unseen)
+    assert n - unseen >= 1  # there is something to train on
     # targets: train split uses train targets only; every evaluation split uses test targets only
     assert set(splits["train"]["targets"]) == groups[2]
     for name in ("seen", "unseen", "unseen_drivers", "heldout_actions"):
         assert set(splits[name]["targets"]) == groups[3]
     # what each split holds out
-    _, heldout = cfg.resolved_actions()
     by_id = {m["id"]: m for m in motions}
     for m in splits["train"]["motions"] + splits["unseen"]["motions"]:
         assert role[by_id[m]["driver"]] == ("driver", "seen") and by_id[m]["action"] not in heldout
@@ -145,12 +152,12 @@ def test_splits_disjoint_and_complete(config):
         assert role[by_id[m]["driver"]] == ("driver", "unseen") and by_id[m]["action"] not in heldout
     assert {by_id[m]["action"] for m in splits["heldout_actions"]["motions"]} == set(heldout)
     # the bank holds exactly the sequences pairs can need
-    have = set(zip(plan["sequences"]["identity"], plan["sequences"]["motion"], strict=True))
+    have = set(zip(plan.sequences["identity"], plan.sequences["motion"], strict=True))
     need = {(m["driver"], m["id"]) for m in motions}
     for s in splits.values():
         need |= {(t, m) for t in s["targets"] for m in s["motions"]}
     assert have == need
-    assert plan["counts"]["meshes"] == cfg.frames * len(have)
+    assert plan.counts["meshes"] == cfg.frames * len(have)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -165,16 +172,16 @@ def test_bank_layout(tiny_bank, tiny_loaded):
 
     m = tiny_loaded.manifest
     cfg = tiny_cfg()
-    assert m["schema_version"] == data.SCHEMA_VERSION and m["topology"] == cfg.topology
-    assert tiny_loaded.vertices.shape == (m["counts"]["meshes"], 369, 3)
+    assert m.schema_version == data.SCHEMA_VERSION and m.topology == cfg.topology
+    assert tiny_loaded.vertices.shape == (m.counts["meshes"], 369, 3)
     assert tiny_loaded.vertices.dtype == np.float32 and np.isfinite(tiny_loaded.vertices).all()
     np.testing.assert_array_equal(tiny_loaded.faces, BodyModel(cfg.topology).faces)
-    schema = pq.read_schema(tiny_bank / m["shards"][0]["path"])
+    schema = pq.read_schema(tiny_bank / m.shards[0]["path"])
     assert str(schema.field("vertices").type) == "fixed_size_list<element: float>[1107]"
-    assert m["config"]["seed"] == cfg.seed and "workers" not in m["config"]
-    table = pq.read_table(tiny_bank / m["shards"][-1]["path"])
+    assert m.config["seed"] == cfg.seed and "workers" not in m.config
+    table = pq.read_table(tiny_bank / m.shards[-1]["path"])
     last = table.slice(table.num_rows - 1).to_pylist()[0]
-    assert last["sequence"] == m["counts"]["sequences"] - 1 and last["frame"] == cfg.frames - 1
+    assert last["sequence"] == m.counts["sequences"] - 1 and last["frame"] == cfg.frames - 1
     assert not list(tiny_bank.rglob(".*"))  # no temporary files left
 
 
@@ -189,7 +196,7 @@ def test_generation_is_deterministic_across_worker_counts(tiny_bank, tmp_path):
 
 def test_seed_changes_the_bank(tiny_loaded, ray_cluster, tmp_path):
     other = data.generate_bank(tiny_cfg(seed=1, instances_per_action=1), tmp_path / "b", progress=False)
-    assert other["identities"][0]["phenotype"] != tiny_loaded.manifest["identities"][0]["phenotype"]
+    assert other.identities[0]["phenotype"] != tiny_loaded.manifest.identities[0]["phenotype"]
 
 
 def test_ground_truth_is_anny_target_shape_with_driving_pose(tiny_loaded):
@@ -200,19 +207,19 @@ def test_ground_truth_is_anny_target_shape_with_driving_pose(tiny_loaded):
     from aniformer.synth.motions import sample_motion
 
     m = tiny_loaded.manifest
-    body = BodyModel(m["topology"])
+    body = BodyModel(m.topology)
     s = sampler(tiny_loaded, shuffle="none", center="none")
     for split in ("train", "unseen", "heldout_actions"):
         b = s.batch(split, 0, np.arange(4))
         for k in range(4):
-            spec = m["motions"][int(b["motion"][k])]
+            spec = m.motions[int(b["motion"][k])]
             motion = sample_motion(spec["action"], spec["seed"], body.bone_labels, frames=spec["frames"])
             window = slice(int(b["start"][k]), int(b["start"][k]) + s.window)
             for key, ident in (
                 ("ground_truth", b["target_identity"][k]),
                 ("driving", b["driving_identity"][k]),
             ):
-                phenotype = np.asarray(m["identities"][int(ident)]["phenotype"], np.float32)
+                phenotype = np.asarray(m.identities[int(ident)]["phenotype"], np.float32)
                 clip = body.pose(np.repeat(phenotype[None], spec["frames"], 0), motion.rotvecs, motion.translation)
                 np.testing.assert_array_equal(b[key][k], clip[window])
     # and, bounding-box centred per mesh, exactly what the default sampler returns
@@ -232,7 +239,7 @@ def test_target_is_target_identity_at_a_frame_of_a_split_motion(tiny_loaded):
     s = sampler(tiny_loaded, shuffle="none", center="none")
     table = s.pair_table("train", 0)
     b = s.batch("train", 0, np.arange(16))
-    train_motions = set(tiny_loaded.manifest["splits"]["train"]["motions"])
+    train_motions = set(tiny_loaded.manifest.splits["train"]["motions"])
     for k in range(16):
         seq = tiny_loaded.sequence(int(table["target_identity"][k]), int(table["target_pose_motion"][k]))
         np.testing.assert_array_equal(b["target"][k], seq[table["target_pose_frame"][k]])
@@ -294,8 +301,8 @@ def test_shuffling_keeps_faces_consistent_and_target_aligned(tiny_loaded, mode):
 def test_motion_is_smooth(tiny_loaded):
     """Consecutive frames of every sequence move a little and smoothly (no jumps, no jitter)."""
     m = tiny_loaded.manifest
-    for s, first in enumerate(m["sequences"]["first_row"]):
-        seq = tiny_loaded.vertices[first : first + m["sequences"]["frames"][s]].astype(np.float64)
+    for s, first in enumerate(m.sequences["first_row"]):
+        seq = tiny_loaded.vertices[first : first + m.sequences["frames"][s]].astype(np.float64)
         velocity = np.diff(seq, axis=0)
         speed = np.linalg.norm(velocity, axis=-1)
         accel = np.linalg.norm(np.diff(velocity, axis=0), axis=-1)
@@ -440,7 +447,7 @@ def test_job_generates_refuses_and_overwrites(tiny_bank, ray_address, tmp_path):
         env=env,
     )
     assert r.returncode == 0, r.stderr
-    assert data.read_manifest(out)["config"]["seed"] == 5
+    assert data.read_manifest(out).config["seed"] == 5
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bank"]  # no temporary directories left
 
 
@@ -480,13 +487,13 @@ def test_import_mesh_sequences(tmp_path):
         unseen_instance_fraction=0.0,
         progress=False,
     )
-    ids = {i["name"]: i for i in manifest["identities"]}
+    ids = {i["name"]: i for i in manifest.identities}
     assert {n for n, i in ids.items() if i["role"] == "driver"} == {"subjA", "subjB"}
     assert sum(i["split"] == "test" for i in ids.values()) == 1
-    assert {m["action"] for m in manifest["motions"]} == {"jump", "wave"}
+    assert {m["action"] for m in manifest.motions} == {"jump", "wave"}
     bank = data.load_bank(tmp_path / "bank", verify=True)
-    assert bank.vertices.shape[1:] == (42, 3) and manifest["counts"]["meshes"] == len(bank.vertices)
-    by_name = {m["name"]: m["id"] for m in manifest["motions"]}
+    assert bank.vertices.shape[1:] == (42, 3) and manifest.counts["meshes"] == len(bank.vertices)
+    by_name = {m["name"]: m["id"] for m in manifest.motions}
     picked = np.round(np.linspace(0, 5, 4)).astype(int)  # 4 of 6 frames, evenly
     seq = bank.sequence(ids["t1"]["id"], by_name["subjB_jump"])
     for k, f in enumerate(picked):
