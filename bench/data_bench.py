@@ -54,17 +54,17 @@ def bench_generation(topology: str, workers: int, root: Path) -> dict:
         seconds = time.perf_counter() - start
         runs.append(seconds)
         if attempt == "warm":
-            size = sum(s["bytes"] for s in manifest["shards"])
+            size = sum(s["bytes"] for s in manifest.shards)
             shutil.rmtree(out)
         else:
             keep = out
-    meshes = manifest["counts"]["meshes"]
+    meshes = manifest.counts["meshes"]
     return {
         "topology": topology,
-        "vertices": manifest["num_vertices"],
+        "vertices": manifest.num_vertices,
         "workers": workers,
         "meshes": meshes,
-        "shards": manifest["counts"]["shards"],
+        "shards": manifest.counts["shards"],
         "mb": round(size / 1e6, 1),
         "cold_s": round(runs[0], 2),
         "warm_s": round(runs[1], 2),

@@ -100,7 +100,7 @@ def _pair_samplers(data, bank_dir: Path, seed: int, pairs: int):
     from pipeline.data import SPLITS, PairSampler, load_bank
 
     bank = load_bank(bank_dir)
-    split_table = bank.manifest["splits"]
+    split_table = bank.manifest.splits
     available = [s for s in SPLITS if s in split_table and split_table[s]["motions"] and split_table[s]["targets"]]
     return (lambda window, mode: PairSampler(bank, window=window, shuffle=mode, center=data.center, seed=seed,
                                              eval_pairs=pairs)), available

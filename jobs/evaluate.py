@@ -324,15 +324,15 @@ def _bank_source(args, ckpt_path: Path, data_cfg: dict, center: str, seed: int, 
             raise UserError(f"no mesh bank beside the checkpoint ({bank_dir}); pass --bank DIR")
     manifest = read_manifest(bank_dir)
     known = list(SPLITS)  # the pipeline's order (train, seen, unseen, ...), then any others of the bank
-    all_splits = sorted(manifest["splits"], key=lambda s: (known.index(s) if s in known else len(known), s))
-    splits = [s for s in all_splits if manifest["splits"][s]["motions"] and manifest["splits"][s]["targets"]]
+    all_splits = sorted(manifest.splits, key=lambda s: (known.index(s) if s in known else len(known), s))
+    splits = [s for s in all_splits if manifest.splits[s]["motions"] and manifest.splits[s]["targets"]]
     empty = [s.strip() for s in (args.splits or "").split(",") if s.strip() in all_splits and s.strip() not in splits]
     if empty:
         raise UserError(f"--splits: split(s) {', '.join(empty)} are empty in this bank")
-    made = manifest.get("config", {})
+    made = manifest.config
     notes = []
     differs = [k for k in GENERATION_FIELDS if k in data_cfg and k in made and made[k] != data_cfg[k]]
-    if manifest.get("kind") == "synthetic" and differs:
+    if manifest.kind == "synthetic" and differs:
         notes.append(f"Note: the bank differs from the checkpoint's training data in {', '.join(differs)}; "
                      "'seen' motions may not be the ones it was trained on.")
         print(notes[-1], file=sys.stderr)
@@ -341,7 +341,7 @@ def _bank_source(args, ckpt_path: Path, data_cfg: dict, center: str, seed: int, 
     def make_sampler(window: int, shuffle_mode: str):
         return PairSampler(bank, window=window, shuffle=shuffle_mode, center=center, seed=seed, eval_pairs=pairs)
 
-    descriptions = {s: manifest["splits"][s].get("description", "") for s in splits}
+    descriptions = {s: manifest.splits[s].get("description", "") for s in splits}
     return splits, descriptions, data_cfg.get("shuffle", "target"), make_sampler, notes, f"bank {bank_dir.resolve()}"
 
 

@@ -102,19 +102,19 @@ def _export_bank(args, out: Path) -> None:
     args.split = args.split or "unseen"
     bank_dir = Path(args.bank).expanduser().resolve()
     bank = load_bank(bank_dir)
-    splits = bank.manifest["splits"]
+    splits = bank.manifest.splits
     if args.split not in splits or not splits[args.split]["motions"] or not splits[args.split]["targets"]:
         raise UserError(f"--split {args.split!r}: not a non-empty split of the bank "
                         f"({', '.join(s for s in splits if splits[s]['motions'] and splits[s]['targets'])})")
     split = splits[args.split]
     motion = _pick("motion", args.motion, split["motions"], args.split)
     target = _pick("target", args.target, split["targets"], args.split)
-    info = bank.manifest["motions"][motion]
+    info = bank.manifest.motions[motion]
     driving = bank.sequence(info["driver"], motion)
     truth = bank.sequence(target, motion)
-    rest_motion = next(m["id"] for m in bank.manifest["motions"] if m["id"] != motion)
+    rest_motion = next(m["id"] for m in bank.manifest.motions if m["id"] != motion)
     target_mesh = bank.sequence(target, rest_motion)[0]
-    driver_name, target_name = (bank.manifest["identities"][i]["name"] for i in (info["driver"], target))
+    driver_name, target_name = (bank.manifest.identities[i]["name"] for i in (info["driver"], target))
     print(f"exported {info['name']} ({len(driving)} frames, {bank.num_vertices} vertices) by {driver_name}, "
           f"target {target_name}")
     _write(out, args.overwrite, driving, truth, target_mesh, bank.faces, {

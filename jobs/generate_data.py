@@ -86,11 +86,11 @@ def main(argv: list[str]) -> None:
             exit_on_sigterm()  # after ray.init, which installs its own handler
             manifest = data.generate_bank(cfg, tmp, workers=args.workers, progress=not args.no_progress)
     seconds = time.perf_counter() - start
-    c = manifest["counts"]
-    size = sum(s["bytes"] for s in manifest["shards"])
+    c = manifest.counts
+    size = sum(s["bytes"] for s in manifest.shards)
     print(
         f"wrote {c['meshes']:,} meshes ({c['sequences']} sequences, {c['motions']} motion instances, "
-        f"{c['identities']} identities, {manifest['num_vertices']:,} vertices) in {c['shards']} shards, "
+        f"{c['identities']} identities, {manifest.num_vertices:,} vertices) in {c['shards']} shards, "
         f"{size / 1e6:.1f} MB, {seconds:.1f} s ({c['meshes'] / seconds:,.0f} meshes/s)"
     )
     print(f"bank: {out}")

@@ -48,7 +48,7 @@ def main(argv: list[str]) -> None:
                         name_help="sweep name: MLflow parent run and Tune experiment").parse_args(argv)
     config = load_config(args.config, args.overrides)
     from pipeline.run_spec import RunSpec
-    from pipeline.tune import apply_params, split_config
+    from pipeline.sweep_config import apply_params, split_config
 
     base, sweep = split_config(config)
     spec = RunSpec.from_config(base)  # bad config: one line before anything starts
@@ -65,7 +65,7 @@ def main(argv: list[str]) -> None:
     connect()
     exit_on_sigterm()  # after ray.init, which installs its own handler
     manifest, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
-    vertices = int(manifest["num_vertices"]) if manifest else int(faces.max()) + 1  # a stream: its topology's
+    vertices = int(manifest.num_vertices) if manifest else int(faces.max()) + 1  # a stream: its topology's
     restore = experiment_exists(out, name)
     parent = start_job_run(name, {**spec.to_dict(), "sweep": sweep.to_dict()}, experiment=args.experiment, out=out)
     parent.set_tags({"kind": "sweep", "sweep.search": sweep.search,

@@ -13,8 +13,9 @@ from urllib.parse import quote
 from ray.tune import CLIReporter
 
 from aniformer.files import atomic_path
+from pipeline.sweep_config import SweepConfig
 from pipeline.tracking import Tracker, tracking_uri
-from pipeline.tune import STATUSES, SUMMARY_FIELDS, SweepConfig, decision_fields, last_result, plan_trial, trial_status
+from pipeline.tune import STATUSES, SUMMARY_FIELDS, decision_fields, last_result, plan_trial, trial_status
 
 
 def summarize(results, sweep: SweepConfig, epochs: int) -> list[dict]:

@@ -283,11 +283,11 @@ def test_export_then_animate_is_the_documented_flow(tiny_run, tmp_path, capsys):
     samples = tmp_path / "samples"
     export_main(["--bank", str(tiny_run / "bank"), "--split", "unseen", "--out", str(samples)])
     bank = load_bank(tiny_run / "bank")
-    split = bank.manifest["splits"]["unseen"]
+    split = bank.manifest.splits["unseen"]
     motion, target = split["motions"][0], split["targets"][0]
     driving, faces = load_driving(driving_files(str(samples / "driving")))
     truth, _ = load_driving(driving_files(str(samples / "ground_truth")))
-    np.testing.assert_allclose(driving, bank.sequence(bank.manifest["motions"][motion]["driver"], motion), atol=1e-6)
+    np.testing.assert_allclose(driving, bank.sequence(bank.manifest.motions[motion]["driver"], motion), atol=1e-6)
     np.testing.assert_allclose(truth, bank.sequence(target, motion), atol=1e-6)
     np.testing.assert_array_equal(faces, bank.faces)
     assert load_mesh(samples / "target.obj")[0].shape == (bank.num_vertices, 3)

@@ -36,16 +36,16 @@ def make_bank(root: Path) -> Path:
     """The tiny config's bank plan with random vertices, written by the bank's own shard writer."""
     cfg = data.data_config(load_config(TINY))
     manifest = data.plan_bank(cfg)
-    V = manifest["num_vertices"]
+    V = manifest.num_vertices
     rng = np.random.default_rng(0)
     shards = []
     for i, seqs in enumerate(data.shard_layout(manifest, cfg.shard_mb)):
-        verts = [rng.standard_normal((manifest["sequences"]["frames"][s], V, 3)).astype(np.float32) for s in seqs]
+        verts = [rng.standard_normal((manifest.sequences["frames"][s], V, 3)).astype(np.float32) for s in seqs]
         payload = data.shard_bytes(seqs, manifest, verts)
         path = bank_manifest.shard_name(i)
         bank_manifest.write_file(root / path, payload)
         shards.append({"path": path, "rows": sum(len(v) for v in verts), "sequences": [seqs[0], seqs[-1] + 1],
-                       "first_row": manifest["sequences"]["first_row"][seqs[0]], "bytes": len(payload),
+                       "first_row": manifest.sequences["first_row"][seqs[0]], "bytes": len(payload),
                        "sha256": hashlib.sha256(payload).hexdigest()})
     faces = np.stack([np.arange(V), (np.arange(V) + 1) % V, (np.arange(V) + 2) % V], 1)
     bank_manifest.finish_bank(root, manifest, faces, shards)
@@ -162,6 +162,8 @@ def test_each_missing_manifest_key_is_named(bank, key):
     (lambda m: m["shards"][0].update(first_row=5), "starts at row 5"),
     (lambda m: m["shards"][2].pop("sha256"), "has no SHA-256 digest"),
     (lambda m: m.pop("config"), "without its config"),
+    (lambda m: m.update(colour="red"), "unknown key(s) colour"),
+    (lambda m: m.update(seeds=[1]), "seeds (list, not dict)"),
 ])
 def test_inconsistent_manifest_is_refused_before_any_shard_is_read(bank, change, words):
     edit_manifest(bank, change)

@@ -31,7 +31,7 @@ CONFIG = ROOT / "configs/sweep_tiny.yaml"
 
 def test_sweep_config_parses_and_rejects_bad_sections():
     from pipeline.run_spec import RunSpec
-    from pipeline.tune import apply_params, split_config
+    from pipeline.sweep_config import apply_params, split_config
 
     base, sweep = split_config(load_config(CONFIG))
     RunSpec.from_config(base)
@@ -49,7 +49,7 @@ def test_sweep_config_parses_and_rejects_bad_sections():
 
 
 def test_points_are_completed_for_the_search():
-    from pipeline.tune import complete_points, split_config
+    from pipeline.sweep_config import complete_points, split_config
 
     _, sweep = split_config(load_config(CONFIG, ["sweep.batch_size=[4, 64]", "sweep.points=[{window: 8, batch_size: 64}]"]))
     (point,) = complete_points(sweep, base_batch=4)
@@ -62,7 +62,8 @@ def test_points_are_completed_for_the_search():
 
 def test_gate_adjusts_then_skips_oversized_trials():
     from pipeline.run_spec import RunSpec
-    from pipeline.tune import apply_params, gate, split_config
+    from pipeline.sweep_config import apply_params, split_config
+    from pipeline.tune import gate
 
     base, sweep = split_config(load_config(CONFIG, ["sweep.memory_limit_gb=1.2"]))
     def plan(**params):
@@ -129,8 +130,8 @@ def _trial(i: int, status: str, config: dict, result: dict | None = None, best: 
 
 
 def _reporter(*overrides: str, every: float = 0.0):
+    from pipeline.sweep_config import split_config
     from pipeline.sweep_table import SweepReporter
-    from pipeline.tune import split_config
 
     base, sweep = split_config(load_config(CONFIG, list(overrides)))
     reporter = SweepReporter(base, sweep, sweep_name="sw", epochs=2, vertices=369, faces=734, every=every)
@@ -364,7 +365,8 @@ def trial_of(runs: dict, window: int, batch_size: int) -> str:
 @pytest.mark.ray
 def test_oversized_trials_are_gated_before_launch_and_summarised(sweep_run):
     from pipeline.data import data_config, prepare_bank
-    from pipeline.tune import plan_trial, split_config
+    from pipeline.sweep_config import split_config
+    from pipeline.tune import plan_trial
 
     out = sweep_run["out"]
     rows = _summary(out)
@@ -376,7 +378,7 @@ def test_oversized_trials_are_gated_before_launch_and_summarised(sweep_run):
         # the gate's prediction for this trial's own point, recomputed here from the bank's sizes
         _, plan = plan_trial(base, {"window": int(row["window"]), "batch_size": int(row["batch_size"]),
                                     **{k: float(row[k]) for k in ("rec", "motion", "appearance")}},
-                             int(manifest["num_vertices"]), len(faces), sweep)
+                             int(manifest.num_vertices), len(faces), sweep)
         assert (row["memory_decision"], float(row["predicted_memory_gb"])) == (
             plan.status, pytest.approx(plan.predicted_gb, abs=1e-3)), row
         assert row["memory_limit_gb"] == "1.2"

@@ -31,7 +31,7 @@ On disk (``DIR/``)::
     shards/part-00000.parquet   one row per mesh: sequence, identity, motion, frame (int32),
                                 vertices fixed_size_list<float32>[V*3] (metres, z up, not centred)
 
-Rows are in global order (sequence-major, frames ascending); ``manifest["sequences"]["first_row"]``
+Rows are in global order (sequence-major, frames ascending); ``manifest.sequences["first_row"]``
 locates a sequence. Generation is a Ray Data pipeline (one work unit per shard, an actor pool
 that keeps one Anny body model per worker) and is deterministic regardless of the number of
 workers: every shard is a pure function of (config, shard index), torch runs single-threaded, and
@@ -56,7 +56,7 @@ seen/unseen, target identities train/test, and held-out action classes; see ``SP
 from pipeline.data.bank import Bank, check_bank_matches, load_bank, read_faces
 from pipeline.data.config import GENERATION_FIELDS, SPLITS, DataConfig, data_config, derive_seed
 from pipeline.data.importer import import_mesh_sequences
-from pipeline.data.manifest import MANIFEST, SCHEMA_VERSION, read_manifest, validate_manifest
+from pipeline.data.manifest import MANIFEST, SCHEMA_VERSION, Manifest, read_manifest, validate_manifest
 from pipeline.data.pairs import PairSampler, pair_source
 from pipeline.data.plan import plan_bank, shard_layout
 from pipeline.data.ray_data import generate_bank, pair_dataset, prepare_bank, quiet_ray_data
@@ -64,7 +64,7 @@ from pipeline.data.shards import shard_bytes
 from pipeline.data.synthetic import generate_shard, motion_of, pose_sequence
 
 __all__ = [
-    "GENERATION_FIELDS", "MANIFEST", "SCHEMA_VERSION", "SPLITS", "Bank", "DataConfig", "PairSampler",
+    "GENERATION_FIELDS", "MANIFEST", "SCHEMA_VERSION", "SPLITS", "Bank", "DataConfig", "Manifest", "PairSampler",
     "check_bank_matches", "data_config", "derive_seed", "generate_bank", "generate_shard", "import_mesh_sequences",
     "load_bank", "motion_of", "pair_dataset", "pair_source", "plan_bank", "pose_sequence", "prepare_bank",
     "quiet_ray_data", "read_faces", "read_manifest", "shard_bytes", "shard_layout", "validate_manifest",

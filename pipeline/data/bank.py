@@ -12,22 +12,22 @@ import numpy as np
 
 from aniformer.errors import UserError
 from pipeline.data.config import GENERATION_FIELDS, DataConfig
-from pipeline.data.manifest import bank_file, read_manifest
+from pipeline.data.manifest import Manifest, bank_file, read_manifest
 from pipeline.data.shards import check_digest, read_file, read_shard
 
 
-def read_faces(bank_dir: str | os.PathLike, manifest: dict, verify: bool = True) -> np.ndarray:
+def read_faces(bank_dir: str | os.PathLike, manifest: Manifest, verify: bool = True) -> np.ndarray:
     """The bank's ``(F, 3)`` int64 faces, checked: inside the bank, a plain ``.npy`` of vertex indices in
     ``[0, num_vertices)``, and (``verify``, banks that record it) its SHA-256."""
-    path = bank_file(bank_dir, manifest["faces"], "faces")
+    path = bank_file(bank_dir, manifest.faces, "faces")
     payload = read_file(path, "faces file")
-    if verify and "faces_sha256" in manifest:
-        check_digest(path, payload, manifest["faces_sha256"], None)
+    if verify and manifest.faces_sha256 is not None:
+        check_digest(path, payload, manifest.faces_sha256, None)
     try:
         faces = np.load(io.BytesIO(payload), allow_pickle=False)
     except (ValueError, OSError, EOFError) as e:
         raise UserError(f"{path}: not a readable .npy of faces ({type(e).__name__})") from None
-    V = manifest["num_vertices"]
+    V = manifest.num_vertices
     if (not isinstance(faces, np.ndarray) or faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0
             or faces.dtype.kind not in "iu" or faces.min() < 0 or faces.max() >= V):
         raise UserError(f"{path}: faces must be (F, 3) integer indices in [0, {V}), got "
@@ -41,7 +41,7 @@ def read_faces(bank_dir: str | os.PathLike, manifest: dict, verify: bool = True)
 class Bank:
     """A bank in memory: ``vertices (meshes, V, 3)`` float32 in global row order, plus metadata."""
 
-    manifest: dict
+    manifest: Manifest
     faces: np.ndarray
     vertices: np.ndarray
 
@@ -51,7 +51,7 @@ class Bank:
 
     def sequence(self, identity: int, motion: int) -> np.ndarray:
         """``(frames, V, 3)`` of an identity performing a motion instance (a view)."""
-        seqs = self.manifest["sequences"]
+        seqs = self.manifest.sequences
         for s, (i, m) in enumerate(zip(seqs["identity"], seqs["motion"], strict=True)):
             if i == identity and m == motion:
                 first = seqs["first_row"][s]
@@ -67,10 +67,10 @@ def load_bank(bank_dir: str | os.PathLike, verify: bool = True) -> Bank:
     Any failure is one `UserError` line naming the file."""
     bank_dir = Path(bank_dir)
     manifest = read_manifest(bank_dir)
-    V = manifest["num_vertices"]
+    V = manifest.num_vertices
     faces = read_faces(bank_dir, manifest, verify)
-    seqs = manifest["sequences"]
-    total = manifest["counts"]["meshes"]
+    seqs = manifest.sequences
+    total = manifest.counts["meshes"]
     frames = np.asarray(seqs["frames"], np.int64)
     expected = {"sequence": np.repeat(np.arange(len(frames), dtype=np.int64), frames),
                 "identity": np.repeat(np.asarray(seqs["identity"], np.int64), frames),
@@ -78,7 +78,7 @@ def load_bank(bank_dir: str | os.PathLike, verify: bool = True) -> Bank:
                 "frame": np.arange(total, dtype=np.int64) - np.repeat(np.asarray(seqs["first_row"], np.int64), frames)}
     vertices = np.empty((total, V, 3), np.float32)
     flat = vertices.reshape(-1)
-    for shard in manifest["shards"]:
+    for shard in manifest.shards:
         path = bank_file(bank_dir, shard["path"], "shard")
         payload = read_file(path, "shard")
         if verify:
@@ -96,11 +96,11 @@ def load_bank(bank_dir: str | os.PathLike, verify: bool = True) -> Bank:
     return Bank(manifest=manifest, faces=faces, vertices=vertices)
 
 
-def check_bank_matches(manifest: dict, cfg: DataConfig) -> None:
+def check_bank_matches(manifest: Manifest, cfg: DataConfig) -> None:
     """`UserError` if a synthetic bank was generated with other generation settings than ``cfg``."""
-    if manifest.get("kind") != "synthetic":
+    if manifest.kind != "synthetic":
         return
-    made, wanted = manifest["config"], cfg.generation_dict()
+    made, wanted = manifest.config, cfg.generation_dict()
     diff = [k for k in GENERATION_FIELDS if made.get(k) != wanted[k]]
     if diff:
         shown = ", ".join(f"{k}={made.get(k)!r} (config: {wanted[k]!r})" for k in diff)

@@ -25,7 +25,7 @@ from aniformer.errors import UserError
 from aniformer.files import natural_key
 from aniformer.mesh import MESH_SUFFIXES, load_mesh
 from pipeline.data.config import check_int, derive_seed
-from pipeline.data.manifest import finish_bank, manifest_core, shard_name, write_file
+from pipeline.data.manifest import Manifest, finish_bank, new_manifest, shard_name, write_file
 from pipeline.data.plan import sequences_for, split_table
 from pipeline.data.shards import shard_bytes
 
@@ -130,7 +130,7 @@ def plan_import(src: Path, clips: dict, *, frames: int | None, test_target_fract
 class ShardWriter:
     """Writes sequences into consecutive shards of about `SHARD_BYTES` each, recording their entries."""
 
-    def __init__(self, out_dir: Path, manifest: dict):
+    def __init__(self, out_dir: Path, manifest: Manifest):
         self.out_dir, self.manifest = out_dir, manifest
         self.shards: list[dict] = []
         self._ids: list[int] = []
@@ -152,7 +152,7 @@ class ShardWriter:
             "path": path,
             "rows": int(sum(len(v) for v in self._vertices)),
             "sequences": [self._ids[0], self._ids[-1] + 1],
-            "first_row": self.manifest["sequences"]["first_row"][self._ids[0]],
+            "first_row": self.manifest.sequences["first_row"][self._ids[0]],
             "bytes": len(payload),
             "sha256": hashlib.sha256(payload).hexdigest(),
         })
@@ -183,7 +183,7 @@ def import_mesh_sequences(
     heldout_actions: Sequence[str] = (),
     seed: int = 0,
     progress: bool = True,
-) -> dict:
+) -> Manifest:
     """Turn folders of mesh frames (see the module's docstring) into a bank in ``out_dir`` (new or empty);
     returns the manifest.
 
@@ -209,18 +209,13 @@ def import_mesh_sequences(
     first = plan.files[0][0]
     first_vertices, faces = load_mesh(first)
     seq_frames = [len(f) for f in plan.files]
-    manifest = manifest_core(kind="meshes", topology=f"user:{src.name}", num_vertices=len(first_vertices),
-                             identities=plan.identities, motions=plan.motions, sequences=plan.sequences,
-                             frames=seq_frames, splits=split_table(plan.identities, plan.motions))
-    manifest["seeds"] = {"seed": seed}
-    manifest["config"] = {
-        "source": str(src),
-        "frames": frames,
-        "test_target_fraction": test_target_fraction,
-        "unseen_instance_fraction": unseen_instance_fraction,
-        "heldout_actions": list(heldout_actions),
-        "seed": seed,
-    }
+    options = {"source": str(src), "frames": frames, "test_target_fraction": test_target_fraction,
+               "unseen_instance_fraction": unseen_instance_fraction, "heldout_actions": list(heldout_actions),
+               "seed": seed}
+    manifest = new_manifest(kind="meshes", topology=f"user:{src.name}", num_vertices=len(first_vertices),
+                            identities=plan.identities, motions=plan.motions, sequences=plan.sequences,
+                            frames=seq_frames, splits=split_table(plan.identities, plan.motions),
+                            seeds={"seed": seed}, config=options)
     out_dir.mkdir(parents=True, exist_ok=True)
     writer = ShardWriter(out_dir, manifest)
     with tqdm(total=int(sum(seq_frames)), unit="mesh", disable=not progress, desc=f"import {src.name}") as bar:

@@ -1,12 +1,14 @@
-"""The bank's manifest: its layout on disk, its schema check, and the files it names.
+"""The bank's manifest (`Manifest`): its layout on disk, its schema check, and the files it names.
 
 A bank directory holds ``manifest.json``, ``faces.npy`` and ``shards/part-NNNNN.parquet``; the manifest is
 written last, so a bank with a manifest is complete. Every path a manifest names is checked to stay
-inside the bank (`bank_file`).
+inside the bank (`bank_file`). `read_manifest` checks the JSON (`validate_manifest`) before it becomes a
+`Manifest`, whose records (identities, motions, splits, shards) stay the JSON objects the file holds.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
 import json
@@ -25,17 +27,41 @@ FACES = "faces.npy"
 SHARD_DIR = "shards"
 
 
-def manifest_core(*, kind, topology, num_vertices, identities, motions, sequences, frames, splits) -> dict:
-    """The manifest fields a synthetic and an imported bank share (``sequences`` are (identity, motion))."""
+@dataclasses.dataclass(frozen=True)
+class Manifest:
+    """What a bank holds and where (``manifest.json``, schema `SCHEMA_VERSION`). Made by `new_manifest`
+    (no shards yet), completed by `finish_bank`, read back by `read_manifest`."""
+
+    kind: str  # "synthetic" (from a data config) or "meshes" (imported mesh folders)
+    topology: str
+    num_vertices: int
+    faces: str  # the faces file, relative to the bank
+    counts: dict  # identities, drivers/targets by split, motions by group, sequences, meshes, shards, faces
+    identities: list  # {id, name, role, split, phenotype?}
+    motions: list  # {id, name, driver, frames, split, action?, instance?, seed?}
+    sequences: dict  # columns identity, motion, frames, first_row: the rows of (identity, motion) in order
+    splits: dict  # name -> {motions, targets, description}
+    seeds: dict
+    config: dict  # what the bank was made from: a synthetic bank's generation config, an import's options
+    shards: list = dataclasses.field(default_factory=list)  # {path, rows, sequences, first_row, bytes, sha256}
+    faces_sha256: str | None = None  # None: a bank from before faces had a digest
+    schema_version: int = SCHEMA_VERSION
+
+    def to_json(self) -> dict:
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
+
+
+def new_manifest(*, kind, topology, num_vertices, identities, motions, sequences, frames, splits, seeds,
+                 config) -> Manifest:
+    """The manifest of a bank about to be written, minus its shards (``sequences`` are (identity, motion))."""
     first_row = np.concatenate([[0], np.cumsum(frames)[:-1]]).astype(int).tolist() if frames else []
     roles = [i["role"] + "_" + i["split"] for i in identities]
-    return {
-        "schema_version": SCHEMA_VERSION,
-        "kind": kind,
-        "topology": topology,
-        "num_vertices": int(num_vertices),
-        "faces": FACES,
-        "counts": {
+    return Manifest(
+        kind=kind,
+        topology=topology,
+        num_vertices=int(num_vertices),
+        faces=FACES,
+        counts={
             "identities": len(identities),
             "drivers_seen": roles.count("driver_seen"),
             "drivers_unseen": roles.count("driver_unseen"),
@@ -46,16 +72,18 @@ def manifest_core(*, kind, topology, num_vertices, identities, motions, sequence
             "sequences": len(sequences),
             "meshes": int(sum(frames)),
         },
-        "identities": identities,
-        "motions": motions,
-        "sequences": {
+        identities=identities,
+        motions=motions,
+        sequences={
             "identity": [int(i) for i, _ in sequences],
             "motion": [int(m) for _, m in sequences],
             "frames": [int(f) for f in frames],
             "first_row": first_row,
         },
-        "splits": splits,
-    }
+        splits=splits,
+        seeds=seeds,
+        config=config,
+    )
 
 
 def write_file(path: Path, payload: bytes) -> None:
@@ -78,19 +106,18 @@ def shard_name(index: int) -> str:
     return f"{SHARD_DIR}/part-{index:05d}.parquet"
 
 
-def finish_bank(out_dir: Path, manifest: dict, faces: np.ndarray, shards: list[dict]) -> dict:
+def finish_bank(out_dir: Path, manifest: Manifest, faces: np.ndarray, shards: list[dict]) -> Manifest:
     """Write the faces and, last, the manifest with its shard list and digests; returns the manifest."""
-    manifest = dict(manifest)
-    manifest["shards"] = sorted(shards, key=lambda s: s["path"])
-    manifest["counts"] = dict(manifest["counts"], shards=len(shards), faces=int(len(faces)))
     faces_bytes = npy_bytes(np.asarray(faces, np.int64))
-    manifest["faces_sha256"] = hashlib.sha256(faces_bytes).hexdigest()
+    manifest = dataclasses.replace(manifest, shards=sorted(shards, key=lambda s: s["path"]),
+                                   counts=dict(manifest.counts, shards=len(shards), faces=int(len(faces))),
+                                   faces_sha256=hashlib.sha256(faces_bytes).hexdigest())
     write_file(out_dir / FACES, faces_bytes)
-    write_json(out_dir / MANIFEST, manifest)  # last: a bank with a manifest is complete
+    write_json(out_dir / MANIFEST, manifest.to_json())  # last: a bank with a manifest is complete
     return manifest
 
 
-def read_manifest(bank_dir: str | os.PathLike) -> dict:
+def read_manifest(bank_dir: str | os.PathLike) -> Manifest:
     """The manifest of a bank directory, its schema checked (`validate_manifest`); `UserError` with one
     line naming the file if it is missing, unreadable, incompatible or inconsistent."""
     path = Path(bank_dir) / MANIFEST
@@ -107,11 +134,12 @@ def read_manifest(bank_dir: str | os.PathLike) -> dict:
             f"{path}: schema version {manifest.get('schema_version')!r}, this code reads {SCHEMA_VERSION}; regenerate the bank"
         )
     validate_manifest(manifest, path)
-    return manifest
+    return Manifest(**{"seeds": {}, "config": {}, **manifest})
 
 
 REQUIRED_KEYS = {"kind": str, "topology": str, "num_vertices": int, "faces": str, "counts": dict, "identities": list,
              "motions": list, "sequences": dict, "splits": dict, "shards": list}
+OPTIONAL_KEYS = {"seeds": dict, "config": dict, "faces_sha256": str, "schema_version": int}
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
@@ -131,21 +159,24 @@ def validate_manifest(manifest: dict, path: str | os.PathLike = MANIFEST) -> Non
     missing = [k for k in REQUIRED_KEYS if k not in manifest]
     if missing:
         _refuse(path, f"missing key(s) {', '.join(missing)}")
-    wrong = [f"{k} ({type(manifest[k]).__name__}, not {t.__name__})" for k, t in REQUIRED_KEYS.items()
-             if not isinstance(manifest[k], t) or (t is int and isinstance(manifest[k], bool))]
+    unknown = sorted(set(manifest) - set(REQUIRED_KEYS) - set(OPTIONAL_KEYS))
+    if unknown:
+        _refuse(path, f"unknown key(s) {', '.join(unknown)}")
+    types = {**REQUIRED_KEYS, **OPTIONAL_KEYS}
+    wrong = [f"{k} ({type(manifest[k]).__name__}, not {t.__name__})" for k, t in types.items()
+             if k in manifest and (not isinstance(manifest[k], t) or (t is int and isinstance(manifest[k], bool)))]
     if wrong:
         _refuse(path, f"wrong type of {', '.join(wrong)}")
     if manifest["num_vertices"] < 3:
         _refuse(path, f"num_vertices {manifest['num_vertices']} < 3")
-    if manifest.get("kind") == "synthetic" and not isinstance(manifest.get("config"), dict):
+    if manifest["kind"] == "synthetic" and not manifest.get("config"):
         _refuse(path, "a synthetic bank without its config")
     _check_records(manifest, path)
     rows = _check_sequences(manifest, path)
     _check_splits(manifest, path)
     _check_shards(manifest, path, rows)
     bank_file(Path(path).parent, manifest["faces"], "faces")
-    if "faces_sha256" in manifest and not (isinstance(manifest["faces_sha256"], str)
-                                           and _SHA256.fullmatch(manifest["faces_sha256"])):
+    if "faces_sha256" in manifest and not _SHA256.fullmatch(manifest["faces_sha256"]):
         _refuse(path, "faces_sha256 is not a SHA-256 digest")
 
 

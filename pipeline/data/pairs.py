@@ -48,14 +48,14 @@ class PairSampler:
         self.bank, self.window, self.shuffle, self.center, self.seed = bank, window, shuffle, center, seed
         self.pairs_per_epoch, self.eval_pairs = pairs_per_epoch, eval_pairs
         m = bank.manifest
-        seqs = m["sequences"]
+        seqs = m.sequences
         self.first_row = np.asarray(seqs["first_row"], np.int64)
         self.seq_frames = np.asarray(seqs["frames"], np.int64)
-        self.seq_of = np.full((len(m["identities"]), len(m["motions"])), -1, np.int64)
+        self.seq_of = np.full((len(m.identities), len(m.motions)), -1, np.int64)
         self.seq_of[np.asarray(seqs["identity"]), np.asarray(seqs["motion"])] = np.arange(len(seqs["frames"]))
-        self.driver = np.asarray([mm["driver"] for mm in m["motions"]], np.int64)
-        self.motion_frames = np.asarray([mm["frames"] for mm in m["motions"]], np.int64)
-        short = [mm["name"] for mm in m["motions"] if mm["frames"] < window]
+        self.driver = np.asarray([mm["driver"] for mm in m.motions], np.int64)
+        self.motion_frames = np.asarray([mm["frames"] for mm in m.motions], np.int64)
+        short = [mm["name"] for mm in m.motions if mm["frames"] < window]
         if short:
             raise UserError(f"window={window} is longer than motion(s) {short[:3]} of the bank")
         self._specs: dict = {}
@@ -101,7 +101,7 @@ class PairSampler:
         """Load a bank; pair settings from ``cfg`` (else from the config the bank was made with)."""
         bank = load_bank(bank_dir)
         if cfg is None:  # the settings the bank was made with (defaults for an imported bank)
-            made = bank.manifest["config"] if bank.manifest.get("kind") == "synthetic" else {}
+            made = bank.manifest.config if bank.manifest.kind == "synthetic" else {}
             known = {f.name for f in dataclasses.fields(DataConfig)}
             cfg = from_dict(DataConfig, {k: v for k, v in made.items() if k in known}, "the bank's config")
         else:
@@ -110,7 +110,7 @@ class PairSampler:
 
     def split(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(motion ids, target identity ids) of a split; `UserError` if unknown or empty."""
-        splits = self.bank.manifest["splits"]
+        splits = self.bank.manifest.splits
         if name not in splits:
             raise UserError(f"unknown split {name!r}; known: {', '.join(splits)}")
         motions = np.asarray(splits[name]["motions"], np.int64)

@@ -10,7 +10,7 @@ import numpy as np
 from aniformer.synth.bodies import TOPOLOGIES, sample_identities
 from aniformer.synth.motions import ACTIONS
 from pipeline.data.config import EXECUTION_FIELDS, SPLITS, DataConfig, derive_seed
-from pipeline.data.manifest import manifest_core
+from pipeline.data.manifest import Manifest, new_manifest
 
 
 def assign_motions(cfg: DataConfig) -> list[dict]:
@@ -85,7 +85,7 @@ def sequences_for(identities: list[dict], motions: list[dict], splits: dict) -> 
     return sorted(needed, key=lambda im: (im[1], im[0] != motions[im[1]]["driver"], im[0]))
 
 
-def plan_bank(cfg: DataConfig) -> dict:
+def plan_bank(cfg: DataConfig) -> Manifest:
     """The manifest of the bank ``cfg`` describes, minus the shard list (no vertices computed)."""
     n_drv, n_tr, n_te = cfg.driving_identities, cfg.target_identities_train, cfg.target_identities_test
     n_seen = n_drv - cfg.unseen_driving_identities
@@ -115,7 +115,15 @@ def plan_bank(cfg: DataConfig) -> dict:
     pairs = sequences_for(identities, motions, splits)
     frames = [cfg.frames] * len(pairs)
     num_vertices = TOPOLOGIES[cfg.topology]
-    manifest = manifest_core(
+    seeds = {
+        "seed": cfg.seed,
+        "identities": identity_seed,
+        "drivers": derive_seed(cfg.seed, "drivers"),
+        "unseen": derive_seed(cfg.seed, "unseen"),
+        "motions": "per motion, see motions[].seed",
+        "pairs": "derive_seed(seed, 'pairs', split, epoch)",
+    }
+    return new_manifest(
         kind="synthetic",
         topology=cfg.topology,
         num_vertices=num_vertices,
@@ -124,28 +132,20 @@ def plan_bank(cfg: DataConfig) -> dict:
         sequences=pairs,
         frames=frames,
         splits=splits,
+        seeds=seeds,
+        config={k: v for k, v in cfg.to_dict().items() if k not in EXECUTION_FIELDS},
     )
-    manifest["seeds"] = {
-        "seed": cfg.seed,
-        "identities": identity_seed,
-        "drivers": derive_seed(cfg.seed, "drivers"),
-        "unseen": derive_seed(cfg.seed, "unseen"),
-        "motions": "per motion, see motions[].seed",
-        "pairs": "derive_seed(seed, 'pairs', split, epoch)",
-    }
-    manifest["config"] = {k: v for k, v in cfg.to_dict().items() if k not in EXECUTION_FIELDS}
-    return manifest
 
 
-def shard_layout(manifest: dict, shard_mb: float, min_shards: int = 16) -> list[list[int]]:
+def shard_layout(manifest: Manifest, shard_mb: float, min_shards: int = 16) -> list[list[int]]:
     """Sequence ids per shard: consecutive, at most ``shard_mb`` MB of vertices per shard, and at
     least ``min_shards`` shards when there are that many sequences (parallelism for generation).
     A function of the manifest only, never of the number of workers."""
-    frames = manifest["sequences"]["frames"]
+    frames = manifest.sequences["frames"]
     n = len(frames)
     if n == 0:
         return []
-    mesh_bytes = manifest["num_vertices"] * 12
+    mesh_bytes = manifest.num_vertices * 12
     by_size = max(1, int(shard_mb * 1e6 // (max(frames) * mesh_bytes)))
     per_shard = max(1, min(by_size, math.ceil(n / min_shards)))
     return [list(range(s, min(n, s + per_shard))) for s in range(0, n, per_shard)]

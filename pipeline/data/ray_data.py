@@ -21,16 +21,26 @@ from aniformer.files import staged_output_dir
 from aniformer.synth.stream import StreamPairs
 from pipeline.data.bank import check_bank_matches, read_faces
 from pipeline.data.config import DataConfig
-from pipeline.data.manifest import FACES, MANIFEST, SHARD_DIR, finish_bank, npy_bytes, read_manifest, shard_name, write_file
+from pipeline.data.manifest import (
+    FACES,
+    MANIFEST,
+    SHARD_DIR,
+    Manifest,
+    finish_bank,
+    npy_bytes,
+    read_manifest,
+    shard_name,
+    write_file,
+)
 from pipeline.data.pairs import PairSampler, pair_source
 from pipeline.data.plan import plan_bank, shard_layout
 from pipeline.data.synthetic import body_model, generate_shard
 
 
-def _generate_shards(batch: dict, manifest: dict, layout: list[list[int]]) -> dict:
+def _generate_shards(batch: dict, manifest: Manifest, layout: list[list[int]]) -> dict:
     """Ray Data task: shard indices -> Parquet bytes (worker processes, and their body model, are
     reused from task to task)."""
-    body = body_model(manifest["topology"])
+    body = body_model(manifest.topology)
     threads = torch.get_num_threads()
     out = {"shard": [], "payload": [], "rows": [], "faces": []}
     try:
@@ -38,7 +48,7 @@ def _generate_shards(batch: dict, manifest: dict, layout: list[list[int]]) -> di
             seqs = layout[int(shard)]
             out["shard"].append(int(shard))
             out["payload"].append(generate_shard(manifest, seqs))
-            out["rows"].append(int(sum(manifest["sequences"]["frames"][s] for s in seqs)))
+            out["rows"].append(int(sum(manifest.sequences["frames"][s] for s in seqs)))
             out["faces"].append(npy_bytes(body.faces) if int(shard) == 0 else b"")
     finally:
         torch.set_num_threads(threads)  # the worker process may run other tasks next
@@ -75,7 +85,7 @@ def quiet_ray_data() -> None:
     ctx.print_on_execution_start = False
 
 
-def generate_bank(cfg: DataConfig, out_dir: str | os.PathLike, *, workers: int | None = None, progress: bool = True) -> dict:
+def generate_bank(cfg: DataConfig, out_dir: str | os.PathLike, *, workers: int | None = None, progress: bool = True) -> Manifest:
     """Generate the synthetic mesh bank of ``cfg`` into ``out_dir`` (new or empty) on the connected
     Ray cluster; returns the manifest. Needs ``ray.init`` first. Same ``cfg`` -> same bytes."""
     out_dir = Path(out_dir)
@@ -96,7 +106,7 @@ def generate_bank(cfg: DataConfig, out_dir: str | os.PathLike, *, workers: int |
     )
     shards, faces = [], None
     bar = tqdm(
-        total=manifest["counts"]["meshes"],
+        total=manifest.counts["meshes"],
         unit="mesh",
         disable=not progress,
         desc=f"bank {cfg.topology} x{n_workers}",
@@ -115,7 +125,7 @@ def generate_bank(cfg: DataConfig, out_dir: str | os.PathLike, *, workers: int |
                     "path": path,
                     "rows": int(row["rows"]),
                     "sequences": [seqs[0], seqs[-1] + 1],
-                    "first_row": manifest["sequences"]["first_row"][seqs[0]],
+                    "first_row": manifest.sequences["first_row"][seqs[0]],
                     "bytes": len(payload),
                     "sha256": hashlib.sha256(payload).hexdigest(),
                 }
@@ -126,7 +136,7 @@ def generate_bank(cfg: DataConfig, out_dir: str | os.PathLike, *, workers: int |
     return finish_bank(out_dir, manifest, faces, shards)
 
 
-def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool) -> tuple[dict | None, np.ndarray]:
+def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool) -> tuple[Manifest | None, np.ndarray]:
     """(manifest, faces) of the bank a job trains on: checked against ``cfg`` if it exists, else
     generated there when ``generate`` (the job's own ``OUT/bank``), else a `UserError`. A stream
     needs no bank: (None, the topology's faces).

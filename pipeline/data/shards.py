@@ -12,7 +12,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from aniformer.errors import UserError
-from pipeline.data.manifest import SCHEMA_VERSION
+from pipeline.data.manifest import SCHEMA_VERSION, Manifest
 
 
 def _vertices_type(num_vertices: int):
@@ -35,10 +35,10 @@ def shard_schema(num_vertices: int):
     )
 
 
-def shard_bytes(sequence_ids: Sequence[int], manifest: dict, vertices: Sequence[np.ndarray]) -> bytes:
+def shard_bytes(sequence_ids: Sequence[int], manifest: Manifest, vertices: Sequence[np.ndarray]) -> bytes:
     """Parquet bytes of one shard: ``vertices[k]`` is ``(frames, V, 3)`` of ``sequence_ids[k]``."""
-    seqs = manifest["sequences"]
-    V = manifest["num_vertices"]
+    seqs = manifest.sequences
+    V = manifest.num_vertices
     cols = {"sequence": [], "identity": [], "motion": [], "frame": []}
     for s, verts in zip(sequence_ids, vertices, strict=True):
         f = len(verts)

@@ -14,6 +14,7 @@ import torch
 
 from aniformer.synth.bodies import BodyModel
 from aniformer.synth.motions import sample_motion
+from pipeline.data.manifest import Manifest
 from pipeline.data.shards import shard_bytes
 
 
@@ -34,21 +35,21 @@ def _motion(action: str, seed: int, frames: int, topology: str):
     return sample_motion(action, seed, BodyModel(topology).bone_labels, frames=frames)
 
 
-def motion_of(manifest: dict, motion_id: int):
+def motion_of(manifest: Manifest, motion_id: int):
     """The ``aniformer.synth.motions.Motion`` of a synthetic bank's motion instance."""
-    m = manifest["motions"][motion_id]
-    return _motion(m["action"], int(m["seed"]), int(m["frames"]), manifest["topology"])
+    m = manifest.motions[motion_id]
+    return _motion(m["action"], int(m["seed"]), int(m["frames"]), manifest.topology)
 
 
-def generate_shard(manifest: dict, sequence_ids: Sequence[int]) -> bytes:
+def generate_shard(manifest: Manifest, sequence_ids: Sequence[int]) -> bytes:
     """Parquet bytes of one shard of a synthetic bank (a pure function of its arguments)."""
     torch.set_num_threads(1)  # thread count can change float summation order: keep bytes fixed
-    body = body_model(manifest["topology"])
-    seqs = manifest["sequences"]
+    body = body_model(manifest.topology)
+    seqs = manifest.sequences
     vertices = [
         pose_sequence(
             body,
-            manifest["identities"][seqs["identity"][s]]["phenotype"],
+            manifest.identities[seqs["identity"][s]]["phenotype"],
             motion_of(manifest, seqs["motion"][s]),
         )
         for s in sequence_ids
