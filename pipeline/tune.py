@@ -106,13 +106,9 @@ def sweep_train_func(loop_config: dict) -> None:
     """`pipeline.train.train_func`, after rank 0 wrote its worker group's placement group id to
     `loop_config["placement_group_file"]`.
 
-    Tune stops a trial (ASHA, or its last epoch reaching max_t) by killing the trial's actor; the
-    TorchTrainer controller it owns dies with it, before it could remove its workers' placement
-    group. Train V2's detached PlacementGroupCleaner should remove it then, but it finds its cluster
-    through the state API, which goes to the wrong cluster when several Ray instances share a
-    machine (the dev/CI machines), so the group leaks and the next trial waits for its CPUs forever.
-    The sweep driver removes the recorded group when the trial ends (`release_placement_group`).
-    """
+    A trial Tune stops takes its TorchTrainer controller with it before the controller removed its
+    workers' placement group, and Train V2's own cleaner can miss it (docs/sweeps.md): the sweep
+    driver removes the recorded group when the trial ends (`release_placement_group`)."""
     path = loop_config.get("placement_group_file")
     group = ray.util.get_current_placement_group()
     if path and group is not None and ray.train.get_context().get_world_rank() == 0:
