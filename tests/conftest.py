@@ -89,3 +89,17 @@ def job_main():
         return job.main
 
     return load
+
+
+def readline(stream, timeout: float, what: str) -> str:
+    """One line of `stream` (a pipe: it has no read timeout), read by a thread; fails after `timeout`
+    seconds naming `what`. At EOF it is "" as readline gives it."""
+    import queue
+    import threading
+
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: lines.put(stream.readline()), daemon=True).start()
+    try:
+        return lines.get(timeout=max(timeout, 0.1))
+    except queue.Empty:
+        raise AssertionError(f"no line from {what} within {timeout:.0f} s") from None

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import readline
 
 from aniformer.cli import load_config, run
 from aniformer.errors import UserError
@@ -238,7 +239,7 @@ def holder(tmp_path):
     def start(out: Path) -> subprocess.Popen:
         proc = subprocess.Popen([PY, "-c", HOLDER.format(root=str(ROOT)), str(out)], stdout=subprocess.PIPE, text=True)
         procs.append(proc)
-        assert proc.stdout.readline().strip() == "locked"
+        assert readline(proc.stdout, 60, "the lock holder").strip() == "locked"
         return proc
 
     yield start
@@ -558,7 +559,7 @@ SLEEPER = textwrap.dedent("""
 def test_sigterm_exits_143_with_one_line_whatever_the_stack_makes_of_it():
     proc = subprocess.Popen([PY, "-c", SLEEPER.format(root=str(ROOT))], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
-    assert proc.stdout.readline().strip() == "ready"
+    assert readline(proc.stdout, 60, "the sleeping job").strip() == "ready"
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 143 and err == "terminated (SIGTERM)\n", err

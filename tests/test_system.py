@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+from conftest import readline
 
 pytestmark = pytest.mark.slow
 
@@ -257,20 +258,6 @@ def _wait(what: str, ok, cluster: Cluster, timeout: float = 240, every: float = 
         assert not dead, f"{', '.join(dead)} exited while waiting for {what}:\n" + "\n".join(cluster.tail(n) for n in dead)
         assert time.time() < deadline, f"timed out waiting for {what}"
         time.sleep(every)
-
-
-def readline(stream, timeout: float, what: str) -> str:
-    """One line of `stream` (a pipe: it has no read timeout), read by a thread; fails after `timeout`
-    seconds naming `what`. At EOF it is "" as readline gives it."""
-    import queue
-    import threading
-
-    lines: queue.Queue = queue.Queue()
-    threading.Thread(target=lambda: lines.put(stream.readline()), daemon=True).start()
-    try:
-        return lines.get(timeout=max(timeout, 0.1))
-    except queue.Empty:
-        raise AssertionError(f"no line from {what} within {timeout:.0f} s") from None
 
 
 def _healthy(url: str) -> bool:
