@@ -142,7 +142,7 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address)
         assert all(float(row[s]) > 0 for s in splits), row
     from aniformer.checkpoint import load_checkpoint
     from aniformer.cli import load_config
-    from pipeline.train import RunSpec
+    from pipeline.run_spec import RunSpec
 
     tiny = RunSpec.from_config(load_config(ROOT / "configs/tiny.yaml"))
     # each variant's checkpoint was trained (1 epoch) with that variant's overrides, the base with none
