@@ -11,10 +11,7 @@ translation (hops) shows, and a faint line marks the row's lowest point (the gro
 from __future__ import annotations
 
 import os
-import tempfile
-from collections.abc import Callable
 from pathlib import Path
-from typing import IO
 
 import matplotlib
 
@@ -22,6 +19,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+
+from aniformer.files import atomic_path  # noqa: E402
 
 _BASE_COLOUR = np.array([0.62, 0.70, 0.86])
 _LIGHT = np.array([-0.3, -1.0, 0.6]) / np.linalg.norm([-0.3, -1.0, 0.6])
@@ -72,7 +71,8 @@ def render_filmstrip(
             if c == 0:
                 ax.text2D(0.02, 0.92, label, transform=ax.transAxes, fontsize=6)
     try:
-        _replace_atomically(path, ".png", lambda f: fig.savefig(f, format="png", dpi=100))
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=100)
     finally:
         plt.close(fig)
     return path
@@ -111,8 +111,9 @@ def render_animation_gif(
     chosen = np.linspace(0, n - 1, count).round().astype(int)
     duration_ms = max(20, int(round(1000.0 / fps * n / count)))  # GIF delays are in 10 ms units
     images = _gif_frames(panels, chosen, panel_px, view, progress)
-    _replace_atomically(path, ".gif", lambda f: images[0].save(
-        f, format="GIF", save_all=True, append_images=images[1:], duration=duration_ms, loop=0, optimize=False))
+    with atomic_path(path) as tmp:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration_ms, loop=0,
+                       optimize=False)
     return path
 
 
@@ -162,15 +163,3 @@ def _draw_mesh(ax, triangles: np.ndarray, box: tuple, view: tuple[float, float],
     ax.set_proj_type("ortho")
     ax.view_init(elev=view[0], azim=view[1])
     ax.set_axis_off()
-
-
-def _replace_atomically(path: Path, suffix: str, save: Callable[[IO[bytes]], object]) -> None:
-    """``save(file)`` under a temporary name beside ``path``, then rename it: readers never see a partial file."""
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=suffix, delete=False) as tmp:
-        try:
-            save(tmp)
-        except BaseException:
-            os.unlink(tmp.name)
-            raise
-    os.chmod(tmp.name, 0o644)  # NamedTemporaryFile creates 0600
-    os.replace(tmp.name, path)

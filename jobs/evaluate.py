@@ -104,10 +104,10 @@ def check_flags(args: argparse.Namespace) -> tuple[list[float] | None, list[tupl
         raise UserError(f"--noise: {e}") from None
     compare = []
     for item in args.compare:
-        label, sep, spec = item.partition("=")
-        if not sep or not label.strip() or not spec:
+        label, sep, reference = item.partition("=")
+        if not sep or not label.strip() or not reference:
             raise UserError(f"--compare {item!r} is not of the form NAME=CKPT")
-        compare.append((label.strip(), spec))
+        compare.append((label.strip(), reference))
     return levels, compare
 
 
@@ -186,16 +186,14 @@ def write_results(out: Path, args: argparse.Namespace, markdown: str, result: di
 
 
 def load_models(checkpoint: str, compare: list) -> tuple[Path, object, dict, list]:
-    """(the checkpoint's path, its model, its state, the --compare rows (label, model, state, reference))."""
-    from aniformer.checkpoint import model_from_checkpoint, resolve_pretrained
+    """(the checkpoint's path, its model, its state, the --compare rows (label, model))."""
+    from aniformer.checkpoint import model_from_checkpoint
 
     with tempfile.TemporaryDirectory(prefix="aniformer-eval-") as scratch:
         ckpt_path = resolve_checkpoint(checkpoint, Path(scratch))
         model, state = model_from_checkpoint(ckpt_path)
-        others = []
-        for label, reference in compare:
-            other, other_state = model_from_checkpoint(resolve_checkpoint(resolve_pretrained(reference), Path(scratch)))
-            others.append((label, other, other_state, reference))
+        others = [(label, model_from_checkpoint(resolve_checkpoint(reference, Path(scratch)))[0])
+                  for label, reference in compare]
     return ckpt_path, model, state, others
 
 
@@ -244,7 +242,8 @@ def main(argv: list[str]) -> None:
     from aniformer.checkpoint import resolve_pretrained  # torch: after the arguments are checked
 
     checkpoint = resolve_pretrained(args.checkpoint)
-    claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--compare": [resolve_pretrained(c) for _, c in compare],
+    compare = [(label, resolve_pretrained(reference)) for label, reference in compare]
+    claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--compare": [reference for _, reference in compare],
                                        "--bank": args.bank or Path(checkpoint).expanduser().parent / "bank"})
     device = resolve_device(args.device)
     start = time.perf_counter()
@@ -253,7 +252,7 @@ def main(argv: list[str]) -> None:
     pairs, seed, (all_splits, descriptions, shuffle, make_sampler, notes, data_label), splits, noise_split = \
         choose_data(args, ckpt_path, config, levels)
     name = args.name or _default_name(args.checkpoint)
-    rows = [(args.name or _model_label(state, model), model)] + [(label, m) for label, m, _, _ in others]
+    rows = [(args.name or _model_label(state, model), model), *others]
     contenders = contenders_of(args, rows, model.config.window, device)
     scores, sweep = score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_split, pairs, seed, device)
     table = {name: {split: float(v.mean()) for split, v in row.items()} for name, row in scores.items()}

@@ -54,7 +54,8 @@ def _root_line(error: BaseException) -> str:
 
 
 def probe_cluster(address: str) -> None:
-    """Refuse, in one line and within `PROBE_SECONDS`, a RAY_ADDRESS where nothing listens."""
+    """Refuse, in one line and within `PROBE_SECONDS` per probe, a RAY_ADDRESS where nothing listens or
+    something other than a Ray head does."""
     if "://" in address:  # a Ray Client or job server URL: ray.init's own errors are shortened below
         return
     from ray._private import services

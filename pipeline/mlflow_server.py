@@ -42,7 +42,7 @@ from pathlib import Path
 
 from aniformer.cli import ArgumentParser, run
 from aniformer.errors import UserError
-from aniformer.files import lock_output, releases_locks
+from aniformer.files import atomic_path, lock_output, releases_locks
 
 DB = "mlflow.db"
 AUTH_DB = "basic_auth.db"  # MLflow's basic-auth users and permissions
@@ -110,7 +110,8 @@ def fetch(dest: str, name: str, local: Path) -> bool:
     source = Path(dest) / name
     if not source.is_file():
         return False
-    local.write_bytes(source.read_bytes())
+    with atomic_path(local) as tmp:  # a restore cut short leaves no partial database that looks complete
+        tmp.write_bytes(source.read_bytes())
     return True
 
 
@@ -119,11 +120,8 @@ def push(local: Path, dest: str, name: str) -> None:
         client, bucket, prefix = _s3(dest)
         client.upload_file(str(local), bucket, f"{prefix}/{name}".lstrip("/"))
         return
-    target = Path(dest) / name
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{name}.tmp")
-    tmp.write_bytes(local.read_bytes())
-    os.replace(tmp, target)
+    with atomic_path(Path(dest) / name) as tmp:
+        tmp.write_bytes(local.read_bytes())
 
 
 def backup(store: Path, dest: str) -> list[str]:

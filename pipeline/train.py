@@ -261,7 +261,7 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
         datasets[split] = pair_dataset(source, split)
     # Blocks in the order of their pair ids: the same config and seed give the same batches, so the
     # same model (Ray Data otherwise yields blocks as tasks finish, and runs diverged from epoch 1).
-    # DataConfig.default_ingest_options() with preserve_order, less its deprecated exclude_resources
+    # ray.train.DataConfig.default_ingest_options() with preserve_order, less its deprecated exclude_resources
     # (passing it, even as the default, warns RayDeprecationWarning).
     current = DataContext.get_current().execution_options
     ingest = ExecutionOptions(resource_limits=current.resource_limits, preserve_order=True,

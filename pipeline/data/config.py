@@ -194,7 +194,6 @@ class DataConfig(Section):
         return {k: plain[k] for k in GENERATION_FIELDS}
 
 
-
 def data_config(config: dict) -> DataConfig:
     """``DataConfig`` from a whole loaded config (its ``data:`` section); `UserError` if bad."""
     return from_dict(DataConfig, (config or {}).get("data"), "data")

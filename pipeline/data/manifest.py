@@ -41,8 +41,8 @@ class Manifest:
     motions: list  # {id, name, driver, frames, split, action?, instance?, seed?}
     sequences: dict  # columns identity, motion, frames, first_row: the rows of (identity, motion) in order
     splits: dict  # name -> {motions, targets, description}
-    seeds: dict
-    config: dict  # what the bank was made from: a synthetic bank's generation config, an import's options
+    seeds: dict = dataclasses.field(default_factory=dict)
+    config: dict = dataclasses.field(default_factory=dict)  # a synthetic bank's generation config, an import's options
     shards: list = dataclasses.field(default_factory=list)  # {path, rows, sequences, first_row, bytes, sha256}
     faces_sha256: str | None = None  # None: a bank from before faces had a digest
     schema_version: int = SCHEMA_VERSION
@@ -134,7 +134,7 @@ def read_manifest(bank_dir: str | os.PathLike) -> Manifest:
             f"{path}: schema version {manifest.get('schema_version')!r}, this code reads {SCHEMA_VERSION}; regenerate the bank"
         )
     validate_manifest(manifest, path)
-    return Manifest(**{"seeds": {}, "config": {}, **manifest})
+    return Manifest(**manifest)
 
 
 REQUIRED_KEYS = {"kind": str, "topology": str, "num_vertices": int, "faces": str, "counts": dict, "identities": list,

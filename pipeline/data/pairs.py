@@ -58,7 +58,7 @@ class PairSampler:
         short = [mm["name"] for mm in m.motions if mm["frames"] < window]
         if short:
             raise UserError(f"window={window} is longer than motion(s) {short[:3]} of the bank")
-        self._specs: dict = {}
+        self._tables: dict = {}
         self._extents()
 
     @property
@@ -126,7 +126,7 @@ class PairSampler:
         """The pair table of one epoch: which driving window, target pose and permutation seed."""
         n = self.default_pairs(split) if n is None else int(n)
         key = (split, int(epoch), n)
-        if key not in self._specs:
+        if key not in self._tables:
             motions, targets = self.split(split)
             rng = np.random.default_rng(derive_seed(self.seed, "pairs", split, int(epoch)))
             motion = motions[rng.integers(len(motions), size=n)]
@@ -135,7 +135,7 @@ class PairSampler:
             pose_motion = motions[rng.integers(len(motions), size=n)]
             pose_frame = (rng.random(n) * self.motion_frames[pose_motion]).astype(np.int64)
             perm_seed = rng.integers(0, 2**63 - 1, size=n, dtype=np.int64)
-            specs = {
+            table = {
                 "index": np.arange(n, dtype=np.int64),
                 "epoch": np.full(n, epoch, np.int64),
                 "motion": motion,
@@ -153,10 +153,10 @@ class PairSampler:
             ):
                 if (self.seq_of[ident, mot] < 0).any():
                     raise UserError(f"split {split!r}: the bank lacks sequences for the {name} of some pairs")
-            if len(self._specs) > 8:
-                self._specs.clear()
-            self._specs[key] = specs
-        return self._specs[key]
+            if len(self._tables) > 8:
+                self._tables.clear()
+            self._tables[key] = table
+        return self._tables[key]
 
     def batch(self, split: str, epoch: int, indices: Sequence[int] | np.ndarray, n: int | None = None) -> dict:
         """Assemble pairs ``indices`` of an epoch: a dict of numpy arrays with a leading batch axis."""
