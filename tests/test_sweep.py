@@ -270,11 +270,11 @@ def sweep_run(tmp_path_factory, ray_address):
     try:
         # The interruption is driven by what the sweep has done, not by time: the two trials before the
         # last have ended (the driver callback gave their runs a final status) and the last one has
-        # opened its run (its trainable started; its training is still to come: worker start, an epoch).
+        # started its trainer (its placement group recorded; its epoch is still to come).
         # "starting sweep" is printed once the job has made its MLflow store and parent run: polling the
         # store earlier could race the job creating its tables.
         _until("the sweep's start", lambda: "starting sweep" in first_log.read_text(errors="replace"), job, first_log)
-        _until("two trials ended and the third running", lambda: _progress(out) == (2, 1), job, first_log)
+        _until("two trials ended and the third training", lambda: _third_is_training(out), job, first_log)
         job.send_signal(signal.SIGINT)  # Tune saves the experiment state and stops
         job.wait(timeout=240)
     finally:
@@ -293,11 +293,16 @@ def sweep_run(tmp_path_factory, ray_address):
             "second": second_log.read_text(errors="replace"), "before": before}
 
 
-def _progress(out: Path) -> tuple[int, int]:
-    """(trials whose MLflow run has ended, trials whose run is open) of the sweep at `out`."""
+def _third_is_training(out: Path) -> bool:
+    """Two trials' runs ended and the third's open, its trainer started: its placement group is recorded,
+    so the driver can remove it when the interrupt ends the trial (an interrupt before that leaks the
+    group, and the restored trial then waits for its CPUs: issue 18's note)."""
+    from pipeline.tune import PLACEMENT_GROUP_FILE
+
     _, _, children = _runs(out)
-    ended = sum(c.info.status != "RUNNING" for c in children)
-    return ended, len(children) - ended
+    running = [c.data.tags.get("trial_id") for c in children if c.info.status == "RUNNING"]
+    return (len(children) - len(running), len(running)) == (2, 1) and \
+        (out / "trials" / f"{out.name}-{running[0]}" / PLACEMENT_GROUP_FILE).is_file()
 
 
 def _until(what: str, ready, job: subprocess.Popen, log: Path, timeout: float = 600) -> None:
