@@ -103,3 +103,31 @@ def readline(stream, timeout: float, what: str) -> str:
         return lines.get(timeout=max(timeout, 0.1))
     except queue.Empty:
         raise AssertionError(f"no line from {what} within {timeout:.0f} s") from None
+
+
+def recomputed_pmd(sampler, split: str, pairs: int, predict=None, frames: slice = slice(None)) -> float:
+    """Mean PMD x1e4 over pairs 0..pairs-1 of `split`, recomputed here in float64 numpy from the sampler's
+    batch, not through `aniformer.evaluate`: what a job's table must say. `predict(batch)` gives the
+    `(B, T', V, 3)` prediction of `frames` of each window; None is the copy-driver."""
+    import numpy as np
+
+    batch = sampler.batch(split, 0, np.arange(pairs), n=pairs)
+    pred = batch["driving"] if predict is None else predict(batch)
+    error = np.asarray(pred, np.float64) - np.asarray(batch["ground_truth"][:, frames], np.float64)
+    return float((error ** 2).sum(-1).mean() * 1e4)
+
+
+def model_predict(model):
+    """`predict` for `recomputed_pmd`: the model in eval mode on a batch's driving, target and faces."""
+    import numpy as np
+    import torch
+
+    model.eval()
+
+    def predict(batch):
+        with torch.no_grad():
+            inputs = [None if batch.get(k) is None else torch.from_numpy(np.ascontiguousarray(batch[k]))
+                      for k in ("driving", "target", "target_faces")]
+            return model(*inputs).float().numpy()
+
+    return predict

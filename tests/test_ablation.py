@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -138,13 +139,33 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address)
                          "deformation transfer"}
     splits = json.loads((out / "ablation.json").read_text())["splits"]
     assert {"seen", "unseen"} <= set(splits)
-    for row in rows.values():
-        assert all(float(row[s]) > 0 for s in splits), row
-    from aniformer.checkpoint import load_checkpoint
+    from conftest import model_predict, recomputed_pmd
+
+    from aniformer.checkpoint import load_checkpoint, model_from_checkpoint
     from aniformer.cli import load_config
+    from pipeline.ablation import slug
+    from pipeline.data import PairSampler, load_bank
     from pipeline.run_spec import RunSpec
 
     tiny = RunSpec.from_config(load_config(ROOT / "configs/tiny.yaml"))
+    # Every row is the PMD of its own predictor on the same 16 pairs, recomputed here from the bank.
+    bank = load_bank(out / "bank")
+
+    def sampler(shuffle: str) -> PairSampler:
+        return PairSampler(bank, window=tiny.data.window, shuffle=shuffle, center=tiny.data.center,
+                           seed=tiny.data.seed, eval_pairs=16)
+
+    def static(batch):
+        return np.repeat(batch["target"][:, None], tiny.data.window, axis=1)
+
+    for split in splits:
+        assert float(rows["copy-driver"][split]) == pytest.approx(recomputed_pmd(sampler("none"), split, 16), rel=1e-4)
+        assert float(rows["static target"][split]) == pytest.approx(
+            recomputed_pmd(sampler("none"), split, 16, static), rel=1e-4)
+        for row, shuffle in {"AniFormer (full)": tiny.data.shuffle, "cross, shuffle both": "both"}.items():
+            model, _ = model_from_checkpoint(out / "runs" / slug(row) / "best.pt")
+            assert float(rows[row][split]) == pytest.approx(recomputed_pmd(
+                sampler(shuffle), split, 16, model_predict(model), model.config.output_frames()), rel=1e-4), (row, split)
     # each variant's checkpoint was trained (1 epoch) with that variant's overrides, the base with none
     for variant, trained_with in {"aniformer_full": (tiny.model.attention, tiny.data.shuffle),
                                   "cross_shuffle_both": ("cross", "both")}.items():

@@ -13,7 +13,7 @@ import torch
 import yaml
 
 from aniformer.baselines import NPT, NPTConfig
-from aniformer.checkpoint import save_checkpoint
+from aniformer.checkpoint import model_from_checkpoint, save_checkpoint
 from aniformer.cli import run
 from aniformer.errors import UserError
 from aniformer.evaluate import (
@@ -145,7 +145,28 @@ def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, ca
     assert [r["method"] for r in rows] == ["tiny", "NPT", "regression head", "copy-driver", "static target",
                                            "deformation transfer"]
     assert list(rows[0]) == ["method", *splits]
-    assert all(np.isfinite(float(r[s])) and float(r[s]) > 0 for r in rows for s in splits)
+    # each row is its predictor's PMD on the same 4 pairs (the checkpoint's seed), recomputed here from the bank
+    from conftest import model_predict, recomputed_pmd
+
+    from pipeline.data import PairSampler, load_bank
+
+    bank = load_bank(tiny_run / "bank")
+
+    def sampler(shuffle: str) -> PairSampler:
+        return PairSampler(bank, window=3, shuffle=shuffle, center=TINY_DATA["center"], seed=TINY_DATA["seed"],
+                           eval_pairs=4)
+
+    def static(batch):
+        return np.repeat(batch["target"][:, None], 3, axis=1)
+
+    model, _ = model_from_checkpoint(tiny_run / "best.pt")
+    table = {r["method"]: r for r in rows}
+    for split in splits:
+        assert float(table["copy-driver"][split]) == pytest.approx(recomputed_pmd(sampler("none"), split, 4), rel=1e-4)
+        assert float(table["static target"][split]) == pytest.approx(
+            recomputed_pmd(sampler("none"), split, 4, static), rel=1e-4)
+        assert float(table["tiny"][split]) == pytest.approx(recomputed_pmd(
+            sampler(TINY_DATA["shuffle"]), split, 4, model_predict(model), model.config.output_frames()), rel=1e-4)
     md = (out / "results.md").read_text()
     for name in ("tiny", "NPT", "regression head", "copy-driver", "static target", "deformation transfer"):
         assert f"| {name} |" in md
@@ -181,7 +202,6 @@ def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, ca
 @pytest.mark.ray
 def test_evaluate_default_bank_beside_checkpoint_matches_training_metric(tiny_run, tmp_path):
     """No --bank: bank/ beside best.pt; PMD over the same pairs as pipeline.train's evaluation."""
-    from aniformer.checkpoint import model_from_checkpoint
     from aniformer.metrics import PMD_SCALE, pmd
     from pipeline.data import PairSampler
 

@@ -303,4 +303,8 @@ def test_model_bench_reports_the_kernel_really_run_and_the_error(repo_root):
     tf32 = measure("dense-tf32", "cpu", vertices=48, window=3, batch=2, steps=1, threads=1)
     assert tf32["attention"] == "attention_math" and tf32["dtype"] == "fp32"  # TF32 exists on CUDA only
     assert torch.get_float32_matmul_precision() == "highest"  # restored for the rest of the process
-    assert ours["forward_tflops"] > 0 and ours["step_ms_per_sample"] > 0
+    # the rates are the counted FLOPs (forward_flops, checked against torch's counter above) over the measured
+    # times: one sample forward, and a training step of the batch at 3x the forward
+    flops = AniFormer(AniFormerConfig(window=3, heads=(8, 4, 4, 2))).forward_flops(48)
+    assert ours["forward_tflops"] == pytest.approx(flops / ours["forward_ms"] / 1e9, rel=1e-9)
+    assert ours["train_tflops"] == pytest.approx(3 * flops / ours["step_ms_per_sample"] / 1e9, rel=1e-9)

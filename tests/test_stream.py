@@ -179,7 +179,20 @@ def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monk
                                "--splits", "seen,rotated,build_mismatch", "--no-mlflow", "--no-progress"])
     rows = {r["method"]: r for r in csv.DictReader((tmp_path / "eval" / "results.csv").open())}
     assert list(rows) == ["AniFormer", "copy-driver", "static target", "deformation transfer"]
-    assert all(float(r[s]) > 0 for r in rows.values() for s in ("seen", "rotated", "build_mismatch"))
+    # the model's and the copy-driver's rows are their PMD on the same 2 stream pairs, recomputed here
+    from conftest import model_predict, recomputed_pmd
+
+    from aniformer.checkpoint import model_from_checkpoint
+    from aniformer.synth.stream import StreamPairs
+
+    model, state = model_from_checkpoint(out / "best.pt")
+    data = state["config"]["data"]
+    stream = StreamPairs(data["topology"], window=model.config.window, center=data["center"], seed=data["seed"],
+                         eval_pairs=2)
+    for split in ("seen", "rotated", "build_mismatch"):
+        assert float(rows["copy-driver"][split]) == pytest.approx(recomputed_pmd(stream, split, 2), rel=1e-4)
+        assert float(rows["AniFormer"][split]) == pytest.approx(
+            recomputed_pmd(stream, split, 2, model_predict(model), model.config.output_frames()), rel=1e-4)
     # the trivial baselines are far from the truth on mismatched builds; the prior is not
     mismatch = {name: float(r["build_mismatch"]) for name, r in rows.items()}
     assert mismatch["deformation transfer"] < 0.5 * min(mismatch["copy-driver"], mismatch["static target"])
