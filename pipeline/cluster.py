@@ -9,7 +9,8 @@ workers, the dashboard and its agents, the runtime-env agent and the three Prome
 (2.60) turns a node IP of 127.0.0.1 into the machine's external address unless its Windows/macOS
 "no cluster" switch is off; `_local_node_only` sets that switch for this process and its children.
 The dashboard and job API run arbitrary code for whoever reaches them, and the exporters answer
-without authentication. tests/test_limits.py lists a local job's listening sockets.
+without authentication. tests/test_limits.py lists a local job's listening sockets. It runs with
+Ray's token authentication (Ray's default for a new local cluster; tests/test_system.py checks it).
 
 A cluster that cannot be reached is one line (`UserError`), not Ray's traceback. `ray.init` has no
 timeout of its own (ray-project/ray#46863): for an address where nothing answers it retries the GCS
@@ -21,6 +22,7 @@ handshake), each within `PROBE_SECONDS`; what `ray.init` still raises is caught 
 
 from __future__ import annotations
 
+import logging
 import os
 import socket
 
@@ -106,6 +108,8 @@ def connect() -> str | None:
         except (ConnectionError, RuntimeError) as error:
             raise UserError(f"RAY_ADDRESS {address}: cannot connect to Ray: {_root_line(error)}") from None
     _local_node_only()
+    # Ray 2.60 turns token auth on for a new local cluster and says so with an opt-out hint: on is our default.
+    logging.getLogger("ray._private.authentication.authentication_token_setup").setLevel(logging.ERROR)
     try:
         context = ray.init(address="local", _node_ip_address=LOCALHOST, include_dashboard=True,
                            dashboard_host=LOCALHOST, log_to_driver=True)
