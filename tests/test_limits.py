@@ -371,11 +371,9 @@ def test_a_local_ray_that_cannot_start_is_one_line_and_exit_2(tmp_path):
     done = subprocess.run([sys.executable, str(ROOT / "jobs/train.py"), "--config", str(TINY), "--out",
                            str(tmp_path / "out"), "train.epochs=1"], cwd=tmp_path, capture_output=True, text=True,
                           timeout=240, env={**env, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"})
-    lines = done.stderr.strip().splitlines()
-    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-3000:]
-    assert lines[-1] == f"error: a local Ray instance could not start: [Errno 20] Not a directory: '{env['RAY_TMPDIR']}'"
-    # before it only Ray's own notice that the new local cluster has token auth
-    assert all("Token authentication is enabled" in line for line in lines[:-1]), lines
+    assert done.returncode == 2, done.stderr[-3000:]
+    assert done.stderr.strip().splitlines() == [
+        f"error: a local Ray instance could not start: [Errno 20] Not a directory: '{env['RAY_TMPDIR']}'"]
     assert not (tmp_path / "out" / ".lock").exists()
 
 
