@@ -266,17 +266,20 @@ def sweep_run(tmp_path_factory, ray_address):
     generate_bank(data_config(load_config(CONFIG)), bank, progress=False)
     out = root / "tiny_sweep"
     first_log, second_log = root / "first.log", root / "second.log"
+    # The sweep needs the whole cluster: CPUs still held by an earlier test would starve its trials.
+    _until_idle()
     job = _sweep_job(out, bank, ray_address, first_log)
     try:
         # The interruption is driven by what the sweep has done, not by time: the two trials before the
         # last have ended (the driver callback gave their runs a final status) and the last one has
-        # started its trainer (its placement group recorded; its epoch is still to come).
+        # started its trainer (its placement group recorded; its epoch is still to come), so the restored
+        # sweep has an unfinished trial to resume.
         # "starting sweep" is printed once the job has made its MLflow store and parent run: polling the
         # store earlier could race the job creating its tables.
         _until("the sweep's start", lambda: "starting sweep" in first_log.read_text(errors="replace"), job, first_log)
         _until("two trials ended and the third training", lambda: _third_is_training(out), job, first_log)
         job.send_signal(signal.SIGINT)  # Tune saves the experiment state and stops
-        job.wait(timeout=240)
+        _exit_code(job, first_log, 240, "the interrupted sweep")
     finally:
         if job.poll() is None:
             os.killpg(job.pid, signal.SIGKILL)
@@ -284,7 +287,7 @@ def sweep_run(tmp_path_factory, ray_address):
     before = {c.data.tags["trial_id"]: c for c in children}
     second = _sweep_job(out, bank, ray_address, second_log)
     try:
-        second.wait(timeout=900)
+        _exit_code(second, second_log, 900, "the restored sweep")
     finally:
         if second.poll() is None:
             os.killpg(second.pid, signal.SIGKILL)
@@ -294,15 +297,40 @@ def sweep_run(tmp_path_factory, ray_address):
 
 
 def _third_is_training(out: Path) -> bool:
-    """Two trials' runs ended and the third's open, its trainer started: its placement group is recorded,
-    so the driver can remove it when the interrupt ends the trial (an interrupt before that leaks the
-    group, and the restored trial then waits for its CPUs: issue 18's note)."""
+    """Two trials' runs ended and the third's open, its trainer started (its placement group recorded)."""
     from pipeline.tune import PLACEMENT_GROUP_FILE
 
     _, _, children = _runs(out)
     running = [c.data.tags.get("trial_id") for c in children if c.info.status == "RUNNING"]
     return (len(children) - len(running), len(running)) == (2, 1) and \
         (out / "trials" / f"{out.name}-{running[0]}" / PLACEMENT_GROUP_FILE).is_file()
+
+
+def _cluster_state() -> str:
+    """The session cluster's free CPUs and live placement groups: what a sweep waiting for CPUs waits on."""
+    import ray
+
+    groups = {g: (v["state"], v["bundles"]) for g, v in ray.util.placement_group_table().items()
+              if v["state"] != "REMOVED"}
+    return (f"CPU free {ray.available_resources().get('CPU', 0)} of {ray.cluster_resources().get('CPU', 0)}, "
+            f"live placement groups {groups}")
+
+
+def _until_idle(timeout: float = 120) -> None:
+    import ray
+
+    deadline = time.time() + timeout
+    while ray.available_resources().get("CPU", 0) < ray.cluster_resources().get("CPU", 0):
+        assert time.time() < deadline, f"the cluster is still busy after {timeout:.0f} s: {_cluster_state()}"
+        time.sleep(1)
+
+
+def _exit_code(job: subprocess.Popen, log: Path, timeout: float, what: str) -> int:
+    """The job's exit code; at the deadline a failure with what the cluster holds and the job's log."""
+    try:
+        return job.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise AssertionError(f"{what} did not end within {timeout:.0f} s; {_cluster_state()}\n{_tail(log)}") from None
 
 
 def _until(what: str, ready, job: subprocess.Popen, log: Path, timeout: float = 600) -> None:
