@@ -53,13 +53,13 @@ TRAIN = ["train.epochs=1", "data.workers=2"]  # 2 generation tasks: the machine 
 # Up to two trials at once, spread over the nodes: a trial holds 0.05 + 0.5 CPU and its Ray Data reads
 # 1 more (docs/sweeps.md); the cluster has 4 logical CPUs (head 2, workers 1 each; 2 physical cores),
 # and the training job holds 1.5 of them while it runs beside the sweep.
-# Three trials, two of them given far apart (and a third drawn), so that the compare view's plots
-# (test_mlflow_compare_view_...) have lambdas and windows that differ.
-SWEEP = ["sweep.num_samples=3", "sweep.search=random", "sweep.max_concurrent=2", "sweep.memory_limit_gb=16",
+# Two trials, given far apart, so that the compare view's plots (test_mlflow_compare_view_...) have
+# lambdas and windows that differ; tests/test_sweep.py covers the search's own draws.
+SWEEP = ["sweep.num_samples=2", "sweep.search=random", "sweep.max_concurrent=2", "sweep.memory_limit_gb=16",
          "sweep.points=[{rec: 0.3, motion: 1.0e-4, appearance: 3.0e-3, window: 2}, "
          "{rec: 3.0, motion: 3.0e-3, appearance: 1.0e-4, window: 6}]",
          "train.epochs=1", "train.render_every=1"]
-TRIALS = 3
+TRIALS = 2
 
 
 # ------------------------------------------------------------------ who listens where (/proc)
