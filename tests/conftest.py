@@ -111,10 +111,19 @@ def recomputed_pmd(sampler, split: str, pairs: int, predict=None, frames: slice 
     `(B, T', V, 3)` prediction of `frames` of each window; None is the copy-driver."""
     import numpy as np
 
+    from aniformer.metrics import PMD_SCALE
+
     batch = sampler.batch(split, 0, np.arange(pairs), n=pairs)
     pred = batch["driving"] if predict is None else predict(batch)
     error = np.asarray(pred, np.float64) - np.asarray(batch["ground_truth"][:, frames], np.float64)
-    return float((error ** 2).sum(-1).mean() * 1e4)
+    return float((error ** 2).sum(-1).mean() * PMD_SCALE)
+
+
+def static_target(batch):
+    """`predict` for `recomputed_pmd`: the target, unmoved, in every frame of the window."""
+    import numpy as np
+
+    return np.repeat(batch["target"][:, None], batch["driving"].shape[1], axis=1)
 
 
 def model_predict(model):

@@ -9,7 +9,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 
@@ -139,7 +138,7 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address)
                          "deformation transfer"}
     splits = json.loads((out / "ablation.json").read_text())["splits"]
     assert {"seen", "unseen"} <= set(splits)
-    from conftest import model_predict, recomputed_pmd
+    from conftest import model_predict, recomputed_pmd, static_target
 
     from aniformer.checkpoint import load_checkpoint, model_from_checkpoint
     from aniformer.cli import load_config
@@ -155,15 +154,13 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address)
         return PairSampler(bank, window=tiny.data.window, shuffle=shuffle, center=tiny.data.center,
                            seed=tiny.data.seed, eval_pairs=16)
 
-    def static(batch):
-        return np.repeat(batch["target"][:, None], tiny.data.window, axis=1)
-
+    models = {row: (model_from_checkpoint(out / "runs" / slug(row) / "best.pt")[0], shuffle)
+              for row, shuffle in {"AniFormer (full)": tiny.data.shuffle, "cross, shuffle both": "both"}.items()}
     for split in splits:
         assert float(rows["copy-driver"][split]) == pytest.approx(recomputed_pmd(sampler("none"), split, 16), rel=1e-4)
         assert float(rows["static target"][split]) == pytest.approx(
-            recomputed_pmd(sampler("none"), split, 16, static), rel=1e-4)
-        for row, shuffle in {"AniFormer (full)": tiny.data.shuffle, "cross, shuffle both": "both"}.items():
-            model, _ = model_from_checkpoint(out / "runs" / slug(row) / "best.pt")
+            recomputed_pmd(sampler("none"), split, 16, static_target), rel=1e-4)
+        for row, (model, shuffle) in models.items():
             assert float(rows[row][split]) == pytest.approx(recomputed_pmd(
                 sampler(shuffle), split, 16, model_predict(model), model.config.output_frames()), rel=1e-4), (row, split)
     # each variant's checkpoint was trained (1 epoch) with that variant's overrides, the base with none

@@ -146,7 +146,7 @@ def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, ca
                                            "deformation transfer"]
     assert list(rows[0]) == ["method", *splits]
     # each row is its predictor's PMD on the same 4 pairs (the checkpoint's seed), recomputed here from the bank
-    from conftest import model_predict, recomputed_pmd
+    from conftest import model_predict, recomputed_pmd, static_target
 
     from pipeline.data import PairSampler, load_bank
 
@@ -156,15 +156,12 @@ def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, ca
         return PairSampler(bank, window=3, shuffle=shuffle, center=TINY_DATA["center"], seed=TINY_DATA["seed"],
                            eval_pairs=4)
 
-    def static(batch):
-        return np.repeat(batch["target"][:, None], 3, axis=1)
-
     model, _ = model_from_checkpoint(tiny_run / "best.pt")
     table = {r["method"]: r for r in rows}
     for split in splits:
         assert float(table["copy-driver"][split]) == pytest.approx(recomputed_pmd(sampler("none"), split, 4), rel=1e-4)
         assert float(table["static target"][split]) == pytest.approx(
-            recomputed_pmd(sampler("none"), split, 4, static), rel=1e-4)
+            recomputed_pmd(sampler("none"), split, 4, static_target), rel=1e-4)
         assert float(table["tiny"][split]) == pytest.approx(recomputed_pmd(
             sampler(TINY_DATA["shuffle"]), split, 4, model_predict(model), model.config.output_frames()), rel=1e-4)
     md = (out / "results.md").read_text()

@@ -466,12 +466,11 @@ def test_training_job_submitted_to_the_cluster(cluster, jobs):
     import torch
 
     from aniformer.checkpoint import load_checkpoint
-    from aniformer.cli import apply_overrides, load_config
+    from aniformer.cli import load_config
     from pipeline.run_spec import RunSpec
 
     best, last = load_checkpoint(out / "best.pt"), load_checkpoint(out / "last.pt")
-    assert best["config"] == RunSpec.from_config(apply_overrides(load_config(ROOT / "configs/tiny.yaml"),
-                                                                 TRAIN)).to_dict()
+    assert best["config"] == RunSpec.from_config(load_config(ROOT / "configs/tiny.yaml", TRAIN)).to_dict()
     # one epoch: the best is the last, weight for weight
     assert best["epoch"] == last["epoch"] == 1 and best["model"].keys() == last["model"].keys()
     assert all(torch.equal(best["model"][k], last["model"][k]) for k in best["model"])
