@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import trimesh
 
 from aniformer.errors import MeshError, UserError
 from aniformer.files import atomic_path, natural_key
@@ -258,20 +259,26 @@ def animate_sequence(
     return (total / count[:, None, None]).float().numpy()
 
 
-def root_motion(driving: np.ndarray, local: np.ndarray, target: np.ndarray) -> np.ndarray:
+def body_scale(target: np.ndarray, target_faces: np.ndarray, driver: np.ndarray, driver_faces: np.ndarray) -> float:
+    """The size of a target body ``(V2, 3)`` over a driver's ``(V1, 3)``: the square root of their surface
+    areas' ratio, the same in any pose and orientation and for any topology (heights are not: a kneeling body)."""
+    areas = [trimesh.triangles.area(np.asarray(v, np.float64)[f]).sum() for v, f in ((target, target_faces),
+                                                                                  (driver, driver_faces))]
+    return float(np.sqrt(areas[0] / areas[1])) if areas[1] > 0 else 1.0
+
+
+def root_motion(driving: np.ndarray, local: np.ndarray, scale: float) -> np.ndarray:
     """(N, 3) translations that put bbox-centred output frames ``local (N, V2, 3)`` where the driver is (z up).
 
     Horizontally the result starts at the driver's first bbox centre and travels the driver's
-    path scaled by s = target height / driver height (z extents of the target and the first
-    driving frame), so a smaller body takes smaller steps. Vertically the driver's lowest point
-    over the clip is the floor, and the floor goes to z = 0 (where clients draw the ground): the
-    result's lowest point stands on it whenever the driver's does, and rises s times as high.
+    path scaled by ``scale`` (the target's size over the driver's, ``body_scale``), so a smaller body
+    takes smaller steps. Vertically the driver's lowest point over the clip is the floor, and the
+    floor goes to z = 0 (where clients draw the ground): the result's lowest point stands on it
+    whenever the driver's does, and rises ``scale`` times as high.
     """
     centres = (driving.min(1) + driving.max(1)) / 2
     lowest = driving[..., 2].min(1)
     floor = lowest.min()
-    driver_height = float(np.ptp(driving[0, :, 2]))
-    scale = float(np.ptp(target[:, 2])) / driver_height if driver_height > 0 else 1.0
     xy = centres[0, :2] + scale * (centres[:, :2] - centres[0, :2])
     z = scale * (lowest - floor) - local[..., 2].min(1)
     return np.concatenate([xy, z[:, None]], 1).astype(np.float32)

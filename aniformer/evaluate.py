@@ -270,15 +270,22 @@ def plot_sweep(sweep: dict[str, dict[float, float]], path, split: str) -> None:
 
 def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[str], *, pairs: int,
                 topology: str | None = None, device: str | torch.device = "cpu", batch_size: int = 8,
-                progress: Callable[[], None] | None = None) -> dict[str, dict[str, np.ndarray]]:
-    """{row: {variant: PMD x1e4 per pair}} on targets of other topologies (``synth.variants``):
-    the model and the deformation transfer alone, each through the registration of the target
-    onto ``topology`` (default: the stream's) where its faces are not that topology's; the
-    copy-driver carried to the target's vertices; the static target."""
-    from aniformer.registration import Correspondence
+                progress: Callable[[], None] | None = None,
+                refused: dict[str, list[bool]] | None = None) -> dict[str, dict[str, np.ndarray]]:
+    """{row: {variant: PMD x1e4 per pair}} on targets and drivers of other topologies
+    (``synth.variants``): the model and the deformation transfer alone, each through the
+    registration onto ``topology`` (default: the stream's) of the target where its faces are not
+    that topology's; the copy-driver carried to the target's vertices; the static target. A
+    variant with a driver of its own (``foreign_driver``) has the driver registered too, on the
+    whole clip (``registration.register_clip``), and the model slides its window over the clip
+    (``animate.animate_sequence``): every frame is scored. ``refused``, when given, gets {variant:
+    per pair, whether the self-check refuses the model's result} (``trust.animation_trust``)."""
+    from aniformer.animate import animate_sequence
+    from aniformer.registration import Correspondence, register_clip
     from aniformer.synth.stream import _body_model
     from aniformer.synth.variants import variant_pairs
     from aniformer.transfer import deformation_transfer
+    from aniformer.trust import animation_trust
 
     topology = topology or stream.topology
     faces = torch.from_numpy(_body_model(topology).faces)
@@ -288,8 +295,15 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
     scores = {name: {v: [] for v in variants} for name in (*rows, "copy-driver", "static target")}
 
     def score(row: str, variant: str, pred: np.ndarray, truth: np.ndarray) -> None:
-        error = pmd_per_frame(torch.from_numpy(np.ascontiguousarray(pred)), torch.from_numpy(truth[frames])).mean()
+        error = pmd_per_frame(torch.from_numpy(np.ascontiguousarray(pred)), torch.from_numpy(truth)).mean()
         scores[row][variant].append(float(error) * PMD_SCALE)
+
+    def drive_clip(clip: np.ndarray, target: np.ndarray) -> dict[str, np.ndarray]:
+        """Each row's template posed by a whole driving ``clip (N, V, 3)`` on the template."""
+        return {"model": animate_sequence(rows["model"], clip, target, window=model.config.window, outputs=frames,
+                                          device=device),
+                "deformation transfer": rows["deformation transfer"](torch.from_numpy(clip[None]),
+                                                                     torch.from_numpy(target[None]))[0].numpy()}
 
     for lo in range(0, pairs, batch_size):
         for pair in variant_pairs(stream, split, 0, range(lo, min(pairs, lo + batch_size)), variants):
@@ -299,13 +313,23 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
                 same = np.array_equal(case["faces"], faces.numpy())
                 correspondence = None if same else Correspondence(case["target"], case["faces"], topology)
                 target = case["target"] if same else correspondence.template
-                for name, run in rows.items():
-                    posed = run(driving, torch.from_numpy(target[None]))[0].float().numpy()
-                    pred = posed if same else correspondence.from_template(posed)
-                    score(name, variant, center_bbox(pred), case["ground_truth"])
-                score("copy-driver", variant, case["copy_driver"][frames], case["ground_truth"])
-                score("static target", variant, np.broadcast_to(case["target"], case["ground_truth"].shape)[frames],
-                      case["ground_truth"])
+                driver_trust = None
+                if "driving" in case:
+                    driver, driver_trust = register_clip(case["driving"], case["driving_faces"], topology)
+                    posed, scored = drive_clip(driver.to_template(case["driving"]), target), slice(None)
+                else:
+                    posed = {name: run(driving, torch.from_numpy(target[None]))[0].float().numpy()
+                             for name, run in rows.items()}
+                    scored = frames
+                truth = case["ground_truth"][scored]
+                results = {name: center_bbox(p if same else correspondence.from_template(p)) for name, p in posed.items()}
+                for name, result in results.items():
+                    score(name, variant, result, truth)
+                score("copy-driver", variant, case["copy_driver"][scored], truth)
+                score("static target", variant, np.broadcast_to(case["target"], truth.shape), truth)
+                if refused is not None:
+                    trust = animation_trust(results["model"], case["target"], case["faces"], correspondence, driver_trust)
+                    refused.setdefault(variant, []).append(not trust.ok)
             if progress is not None:
                 progress()
     return {row: {v: np.asarray(x) for v, x in values.items()} for row, values in scores.items()}

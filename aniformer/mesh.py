@@ -109,6 +109,27 @@ def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
     return path
 
 
+GLTF_SUFFIXES = (".glb", ".gltf")  # y-up by the glTF specification
+UP_AXES = ("z", "y")  # the axis a file's bodies stand along: z (Anny, Blender's scene) or y (glTF, OBJ exports)
+
+
+def to_z_up(vertices: np.ndarray, up: str) -> np.ndarray:
+    """Vertices ``(..., 3)`` of a file whose up axis is ``up`` in the project's z-up axes (glTF's y-up
+    (x, y, z) is (x, -z, y) here: the inverse of what ``aniformer.glb`` writes)."""
+    if up == "z":
+        return vertices
+    x, y, z = np.moveaxis(np.asarray(vertices), -1, 0)
+    return np.stack([x, -z, y], -1)
+
+
+def from_z_up(vertices: np.ndarray, up: str) -> np.ndarray:
+    """Vertices ``(..., 3)`` in z-up axes back in a file's axes whose up axis is ``up`` (inverse of ``to_z_up``)."""
+    if up == "z":
+        return vertices
+    x, y, z = np.moveaxis(np.asarray(vertices), -1, 0)
+    return np.stack([x, z, -y], -1)
+
+
 def center_bbox(vertices):
     """Centre meshes on their bounding box, as the paper does; works on numpy or torch `(..., V, 3)`."""
     if isinstance(vertices, np.ndarray):

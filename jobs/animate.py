@@ -19,7 +19,7 @@ docs/animate.md. The result is placed in world space where the driver is (its ro
 to the target's height, feet on the driver's floor); ``--center`` keeps every frame bounding-box
 centred instead.
 
-Outputs in ``--out``: frames/frame_NNNN.obj (one per driving frame, in the inputs' unit and axes),
+Outputs in ``--out``: frames/frame_NNNN.obj (one per driving frame, in the target's unit and axes),
 animation.glb (glTF 2.0: y up, metres, morph targets, lasting N / fps), preview.gif (driver |
 result) and animation.json (what was done). They are written under a temporary name beside
 ``--out`` and renamed into place when complete; an existing non-empty ``--out`` is refused unless
@@ -43,7 +43,7 @@ from aniformer.cli import ArgumentParser, resolve_device, run
 from aniformer.errors import UserError
 from aniformer.files import claim_output, releases_locks, staged_output_dir
 from aniformer.glb import FRAMES_PER_MESH, MAX_GLB_BYTES, MAX_MORPH_TARGETS
-from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS
+from aniformer.mesh import DEFAULT_MAX_VERTICES, GLTF_SUFFIXES, UNITS, UP_AXES
 from pipeline.registry import resolve_checkpoint
 
 
@@ -60,6 +60,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help=f"frame rate of the sequence (default: the driver's, from {' or '.join(FPS_SIDECARS)} "
                         "beside its frames, else 30)")
     p.add_argument("--unit", choices=tuple(UNITS), default="m", help="unit of the target and driving files (default m)")
+    p.add_argument("--up", choices=("auto", *UP_AXES), default="auto",
+                   help="the axis the inputs stand along (default auto: the axis the body stands along, else the "
+                        "format's: y for glTF, z for the others); outputs are written in the target's axes")
     p.add_argument("--name", default=None,
                    help="name of the glTF node, mesh and animation (default: TARGET_DRIVING from the file names)")
     p.add_argument("--template", metavar="TOPOLOGY",
@@ -83,7 +86,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help="frames drawn in preview.gif, evenly spaced (default 60; 0 = no preview)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: cuda if available)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing non-empty --out")
-    p.add_argument("--force", action="store_true", help="animate even when the estimated time is over 2 h")
+    p.add_argument("--force", action="store_true",
+                   help="animate even when the estimated time is over 2 h, and write a result the self-check refuses")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p.parse_args(argv)
 
@@ -134,15 +138,37 @@ def load_inputs(args):
     return files, target, target_faces, fps, name
 
 
-def model_inputs(args, state: dict, config, driving, driving_faces, target, target_faces):
-    """(faces, driving, target) on the topology the model runs on, and the registrations that carry meshes of
-    other topologies there (`aniformer.registration.Correspondence`, by role); none for an absolute-output model."""
+def input_axes(args, files, target_faces, target, driving, driving_faces) -> dict[str, tuple[str, str]]:
+    """{role: (up axis, why)} of the target and the driver: ``--up``, else glTF's y, else the axis the body
+    stands along (``aniformer.registration.detect_up``)."""
     import numpy as np
 
-    registrations = {}
+    from aniformer.registration import detect_up
+
+    axes = {}
+    for role, path, frames, faces in (("target", Path(args.target), target[None], target_faces),
+                                      ("driver", files[0], driving, driving_faces)):
+        convention = "y" if path.suffix.lower() in GLTF_SUFFIXES else "z"
+        if args.up != "auto":
+            axes[role] = (args.up, "--up")
+        elif convention == "y":
+            axes[role] = ("y", "glTF is y-up")
+        else:
+            shown = frames[np.unique(np.linspace(0, len(frames) - 1, min(len(frames), 8)).round().astype(int))]
+            axes[role] = detect_up(shown, faces, convention)
+    return axes
+
+
+def model_inputs(args, state: dict, config, driving, driving_faces, target, target_faces):
+    """(faces, driving, target) on the topology the model runs on, the registrations that carry meshes of
+    other topologies there (`aniformer.registration.Correspondence`, by role; none for an absolute-output
+    model) and the driver's self-check where it was registered (`aniformer.trust.Trust`, else None)."""
+    import numpy as np
+
+    registrations, driver_trust = {}, None
     if getattr(config, "output", "absolute") == "absolute":  # no vertex correspondence needed
-        return target_faces, driving, target, registrations
-    from aniformer.registration import Correspondence
+        return target_faces, driving, target, registrations, driver_trust
+    from aniformer.registration import Correspondence, register_clip
     from aniformer.synth.bodies import TOPOLOGIES, BodyModel
 
     trained = (state["config"].get("data") or {}).get("topology")
@@ -151,20 +177,23 @@ def model_inputs(args, state: dict, config, driving, driving_faces, target, targ
         raise UserError(f"--template must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
     template = BodyModel(topology)
     faces = template.faces
-    for role, vertices, mesh_faces in (("driver", driving[0], driving_faces), ("target", target, target_faces)):
-        if not np.array_equal(mesh_faces, faces):  # another vertex count, order or connectivity
-            began = time.perf_counter()
-            registrations[role] = Correspondence(vertices, mesh_faces, topology)
-            fit = registrations[role]
-            print(f"registered the {role} ({len(vertices):,} vertices) onto Anny {topology} ({template.num_vertices:,} "
-                  f"vertices): {fit.rms * 1000:.1f} mm RMS surface distance, {time.perf_counter() - began:.1f} s",
-                  file=sys.stderr)
-            if fit.rms > 0.05:
-                print(f"warning: the {role} fits Anny's body poorly ({fit.rms * 1000:.0f} mm RMS): is it a "
-                      "human, upright and z up in --unit?", file=sys.stderr)
+    if not np.array_equal(driving_faces, faces):  # another vertex count, order or connectivity
+        began = time.perf_counter()
+        registrations["driver"], driver_trust = register_clip(driving, driving_faces, topology)
+        _report_fit("driver", registrations["driver"], template, began)
+    if not np.array_equal(target_faces, faces):
+        began = time.perf_counter()
+        registrations["target"] = Correspondence(target, target_faces, topology)
+        _report_fit("target", registrations["target"], template, began)
     model_driving = registrations["driver"].to_template(driving) if "driver" in registrations else driving
     model_target = registrations["target"].template if "target" in registrations else target
-    return faces, model_driving, model_target, registrations
+    return faces, model_driving, model_target, registrations, driver_trust
+
+
+def _report_fit(role: str, fit, template, began: float) -> None:
+    print(f"registered the {role} ({len(fit.vertices):,} vertices) onto Anny {template.topology} "
+          f"({template.num_vertices:,} vertices): {fit.rms * 1000:.1f} mm RMS surface distance, "
+          f"{time.perf_counter() - began:.1f} s", file=sys.stderr)
 
 
 def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local, translation, target_faces) -> None:
@@ -173,7 +202,7 @@ def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local,
 
     from aniformer.animate import write_obj
     from aniformer.glb import write_glb
-    from aniformer.mesh import center_bbox
+    from aniformer.mesh import center_bbox, from_z_up
 
     written = time.perf_counter()
     world = local if translation is None else local + translation[:, None]
@@ -181,7 +210,8 @@ def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local,
     with staged_output_dir(out, args.overwrite) as tmp:
         digits = max(4, len(str(len(local) - 1)))
         (tmp / "frames").mkdir()
-        for k, vertices in enumerate(tqdm(world / UNITS[args.unit], unit="obj", desc="write OBJ",
+        in_target_axes = from_z_up(world, summary["up"]["target"]["axis"]) / UNITS[args.unit]
+        for k, vertices in enumerate(tqdm(in_target_axes, unit="obj", desc="write OBJ",
                                           disable=args.no_progress, file=sys.stderr)):
             write_obj(tmp / "frames" / f"frame_{k:0{digits}d}.obj", vertices, target_faces)
         if not args.no_glb:
@@ -203,17 +233,19 @@ def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local,
 
 def infer(args, model, state: dict, driving, driving_faces, target, target_faces, device):
     """The target's animated frames (sliding windows of the model) and how they were made:
-    (frames, combine, windows, input_center, registrations)."""
+    (frames, combine, windows, input_center, registrations, the self-check's ``Trust``, the size of the
+    target's body over the driver's)."""
     import numpy as np
     import torch
     from tqdm import tqdm
 
-    from aniformer.animate import animate_sequence, num_windows
+    from aniformer.animate import animate_sequence, body_scale, num_windows
+    from aniformer.trust import animation_trust
 
     config = model.config
     input_center = args.input_center or (state["config"].get("data") or {}).get("center", "mesh")
-    faces, model_driving, model_target, registrations = model_inputs(args, state, config, driving, driving_faces,
-                                                                      target, target_faces)
+    faces, model_driving, model_target, registrations, driver_trust = model_inputs(args, state, config, driving,
+                                                                              driving_faces, target, target_faces)
     model = functools.partial(model.to(device), faces=torch.from_numpy(np.asarray(faces, np.int64)).to(device))
     outputs = config.output_frames()
     combine = args.combine if outputs == slice(None) else "center"
@@ -226,7 +258,9 @@ def infer(args, model, state: dict, driving, driving_faces, target, target_faces
         result = registrations["target"].from_template(result)
     if not np.isfinite(result).all():
         raise UserError(f"the model produced NaN or infinite coordinates ({args.checkpoint}: diverged weights?)")
-    return result, combine, total, input_center, registrations
+    trust = animation_trust(result, target, target_faces, registrations.get("target"), driver_trust)
+    scale = body_scale(target, target_faces, driving[0], driving_faces)
+    return result, combine, total, input_center, registrations, trust, scale
 
 
 @releases_locks
@@ -244,7 +278,7 @@ def main(argv: list[str]) -> None:
 
     from aniformer.animate import load_driving, root_motion
     from aniformer.checkpoint import model_from_checkpoint
-    from aniformer.mesh import center_bbox
+    from aniformer.mesh import center_bbox, to_z_up
 
     start = time.perf_counter()
     files, target, target_faces, fps, name = load_inputs(args)  # bad input fails before any work
@@ -252,12 +286,18 @@ def main(argv: list[str]) -> None:
         model, state = model_from_checkpoint(resolve_checkpoint(checkpoint, Path(scratch)))
     with tqdm(total=len(files), unit="frame", desc="load driving", disable=args.no_progress, file=sys.stderr) as bar:
         driving, driving_faces = load_driving(files, args.max_vertices, args.unit, progress=bar.update)
+    axes = input_axes(args, files, target_faces, target, driving, driving_faces)
+    target, driving = to_z_up(target, axes["target"][0]), to_z_up(driving, axes["driver"][0])
     loaded = time.perf_counter()
-    result, combine, total, input_center, registrations = infer(args, model, state, driving, driving_faces, target,
-                                                                target_faces, device)
+    result, combine, total, input_center, registrations, trust, scale = infer(args, model, state, driving, driving_faces,
+                                                                              target, target_faces, device)
+    if not trust.ok and not args.force:
+        raise UserError(f"the self-check does not trust the result, nothing written: {trust.reason()}; check the "
+                        f"inputs' up axis (read as {axes['target'][0]} for the target, {axes['driver'][0]} for the "
+                        "driver: --up) and that both are whole human bodies, or pass --force to write it anyway")
     inferred = time.perf_counter()
     local = center_bbox(result)
-    translation = None if args.center else root_motion(driving, local, target)
+    translation = None if args.center else root_motion(driving, local, scale)
 
     window = model.config.window
     summary = {
@@ -267,12 +307,19 @@ def main(argv: list[str]) -> None:
         "window": window, "combine": combine, "windows": total, "input_center": input_center,
         "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template)}
                        for role, fit in registrations.items()},
+        "up": {role: {"axis": axis, "why": why} for role, (axis, why) in axes.items()},
+        "trust": trust.to_dict(),
         "output_centred": args.center,
         "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
         "seconds": {"load": round(loaded - start, 3), "inference": round(inferred - loaded, 3)},
     }
     write_outputs(out, args, summary, driving, driving_faces, local, translation, target_faces)
     seconds = time.perf_counter() - start
+    worst = max(trust.checks, key=lambda c: c.value / c.limit)
+    if trust.ok:
+        print(f"self-check: trusted (closest to its limit: {worst.name} {worst.value:.3f} of {worst.limit:.3f})")
+    else:
+        print(f"warning: written with --force, the self-check does not trust it: {trust.reason()}", file=sys.stderr)
     print(f"animated {len(result)} frames ({target.shape[0]:,}-vertex target, {driving.shape[1]:,}-vertex driver, "
           f"T={window}, {total} windows, combine={combine}) in {seconds:.1f} s "
           f"(inference {inferred - loaded:.1f} s)")

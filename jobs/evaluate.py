@@ -46,8 +46,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--bank", metavar="DIR", help="mesh bank (default: bank/ beside the checkpoint; none for a stream)")
     p.add_argument("--topology", help="stream checkpoints: the Anny topology of the pairs (default: the training one)")
     p.add_argument("--targets", metavar="VARIANTS",
-                   help="stream checkpoints: score targets of other topologies instead of the splits, e.g. "
-                        "same,topology,shuffled,remeshed (aniformer/synth/variants.py), on --target-split")
+                   help="stream checkpoints: score targets (and drivers) of other topologies instead of the splits, "
+                        "e.g. same,remeshed,posed,rotated,lying,glb,parts,dense,foreign_driver "
+                        "(aniformer/synth/variants.py), on --target-split")
     p.add_argument("--target-split", default="characters", help="the split of --targets (default: characters)")
     p.add_argument("--compare", action="append", default=[], metavar="NAME=CKPT",
                    help="a baseline checkpoint (file or run id) as row NAME; repeatable")
@@ -140,10 +141,17 @@ def choose_data(args: argparse.Namespace, ckpt_path: Path, config: dict, levels)
     return pairs, seed, source, splits, noise_split
 
 
+def refusals_line(refused: dict[str, list[bool]]) -> str:
+    """--targets: how many of each variant's model results the self-check refused, as one line."""
+    counts = ", ".join(f"`{variant}` {sum(values)}/{len(values)}" for variant, values in refused.items())
+    return f"Refused by the self-check (aniformer/trust.py), of the model's results: {counts}."
+
+
 def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, descriptions: dict, notes: list,
                    data_label: str, *, pairs: int, seed: int, splits: list, shuffle: str, noise_split: str,
-                   seconds: float) -> tuple[str, dict]:
-    """The results as Markdown (mean and SD tables, the noise sweep) and as the results.json record."""
+                   seconds: float, refused: dict[str, list[bool]] | None = None) -> tuple[str, dict]:
+    """The results as Markdown (mean and SD tables, the noise sweep, --targets' refusals) and as the
+    results.json record."""
     from aniformer.evaluate import table_markdown
 
     notes.append(f"{pairs} pairs per split (seed {seed}, window as each model's, vertex shuffling "
@@ -151,6 +159,8 @@ def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, 
                  f"(epoch {state.get('epoch')}); data: {data_label}.")
     markdown = table_markdown(table, splits, descriptions, notes=notes)
     markdown += "\n" + table_markdown(spread, splits, title="Standard deviation of PMD over the pairs of each split")
+    if refused is not None:
+        markdown += "\n" + refusals_line(refused) + "\n"
     if sweep is not None:
         markdown += (f"\n**PMD (×10⁻⁴) vs uniform driver noise (± m), split `{noise_split}`**\n\n"
                      + table_markdown({k: {f"{lv:g}": v for lv, v in row.items()} for k, row in sweep.items()},
@@ -161,6 +171,8 @@ def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, 
               "noise": None if sweep is None else {"split": noise_split,
                                                    "pmd": {k: {f"{lv:g}": v for lv, v in row.items()}
                                                            for k, row in sweep.items()}}}
+    if refused is not None:
+        result["refused"] = {variant: [bool(r) for r in values] for variant, values in refused.items()}
 
     return markdown, result
 
@@ -212,17 +224,20 @@ def contenders_of(args, rows: list, window: int, device):
 
 
 def score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_split, pairs, seed, device):
-    """({row: {split: per-pair PMDs}}, the noise sweep or None), with a progress bar on stderr."""
+    """({row: {split: per-pair PMDs}}, the noise sweep or None, --targets: {variant: per pair, whether the
+    self-check refused the model's result} or None), with a progress bar on stderr."""
     from tqdm import tqdm
 
     from aniformer.evaluate import Samplers, evaluate_pairs, noise_sweep, target_pmds
 
     model = rows[0][1]
     if args.targets is not None:
+        refused: dict[str, list[bool]] = {}
         with tqdm(total=pairs, unit="pair", desc="evaluate targets", disable=args.no_progress, file=sys.stderr) as bar:
             scores = target_pmds(model, make_sampler(model.config.window, "none"), args.target_split, splits,
-                                 pairs=pairs, device=device, batch_size=args.batch_size, progress=lambda: bar.update(1))
-        return {rows[0][0]: scores.pop("model"), **scores}, None
+                                 pairs=pairs, device=device, batch_size=args.batch_size, progress=lambda: bar.update(1),
+                                 refused=refused)
+        return {rows[0][0]: scores.pop("model"), **scores}, None, refused
     samplers = Samplers(make_sampler, shuffle)
     steps = len(contenders) * (len(splits) + (len(levels) if levels else 0))
     with tqdm(total=steps, unit="split", desc="evaluate", disable=args.no_progress, file=sys.stderr) as bar:
@@ -231,7 +246,7 @@ def score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_s
         sweep = None if levels is None else noise_sweep(contenders, samplers, noise_split, levels, pairs=pairs,
                                                         batch_size=args.batch_size, seed=seed,
                                                         progress=lambda *_: bar.update(1))
-    return scores, sweep
+    return scores, sweep, None
 
 
 @releases_locks
@@ -254,7 +269,8 @@ def main(argv: list[str]) -> None:
     name = args.name or _default_name(args.checkpoint)
     rows = [(args.name or _model_label(state, model), model), *others]
     contenders = contenders_of(args, rows, model.config.window, device)
-    scores, sweep = score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_split, pairs, seed, device)
+    scores, sweep, refused = score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_split, pairs, seed,
+                                   device)
     table = {name: {split: float(v.mean()) for split, v in row.items()} for name, row in scores.items()}
     spread = {name: {split: float(v.std(ddof=1)) if len(v) > 1 else float("nan") for split, v in row.items()}
               for name, row in scores.items()}
@@ -262,9 +278,11 @@ def main(argv: list[str]) -> None:
 
     markdown, result = results_report(args, state, table, spread, sweep, levels, descriptions, notes, data_label,
                                       pairs=pairs, seed=seed, splits=splits, shuffle=shuffle, noise_split=noise_split,
-                                      seconds=seconds)
+                                      seconds=seconds, refused=refused)
     run_id = write_results(out, args, markdown, result, table, sweep, config, name)
     print(markdown.split("\n\n- ")[0].strip())
+    if refused is not None:
+        print(refusals_line(refused))
     print(f"evaluated {len(scores)} models x {len(splits)} splits x {pairs} pairs in {seconds:.1f} s")
     print(f"results: {out / 'results.md'}, {out / 'results.csv'}" + (f", {out / 'noise.png'}" if sweep else ""))
     if run_id:
@@ -292,7 +310,7 @@ def _stream_source(args, data_cfg: dict, center: str, seed: int, pairs: int):
 def _target_source(args, data_cfg: dict, center: str, seed: int, pairs: int):
     """(variants as splits, descriptions, shuffle, make_sampler, notes, data label) of ``--targets``."""
     from aniformer.synth.stream import SPLITS
-    from aniformer.synth.variants import VARIANTS
+    from aniformer.synth.variants import DRIVER_FRAMES, VARIANTS
 
     if data_cfg.get("source") != "stream" or args.bank or args.compare or args.noise:
         raise UserError("--targets scores a stream checkpoint alone: no --bank, --compare or --noise")
@@ -306,6 +324,10 @@ def _target_source(args, data_cfg: dict, center: str, seed: int, pairs: int):
     notes.append(f"Targets of split `{args.target_split}` ({SPLITS[args.target_split].description}); the model and "
                  "the deformation transfer reach targets of other topologies through aniformer/registration.py, "
                  "the copy-driver is carried to the target's vertices through the ground-truth correspondence.")
+    if "foreign_driver" in variants:
+        notes.append(f"`foreign_driver`: the driver is registered on its whole {DRIVER_FRAMES}-frame clip "
+                     "(aniformer/registration.py: register_clip), and the model slides its window over the clip "
+                     "(aniformer/animate.py); every frame is scored.")
     return variants, VARIANTS, shuffle, make_sampler, notes, label
 
 

@@ -28,6 +28,7 @@ import yaml
 
 from aniformer.animate import (
     animate_sequence,
+    body_scale,
     driving_files,
     driving_fps,
     load_driving,
@@ -212,22 +213,22 @@ def still_target_model(driving: torch.Tensor, target: torch.Tensor) -> torch.Ten
     return target[:, None].expand(-1, driving.shape[1], -1, -1)
 
 
-def world_frames(seq: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def world_frames(seq: np.ndarray, target: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """What jobs/animate.py writes for ``still_target_model``: (local frames, root translation)."""
     local = center_bbox(animate_sequence(still_target_model, seq, target, window=3))
-    return local, root_motion(seq, local, target)
+    return local, root_motion(seq, local, body_scale(target, faces, seq[0], faces))
 
 
 def test_model_output_is_centred_and_root_motion_places_it_where_the_driver_is():
-    seq, _ = jump_and_walk(30)
+    seq, faces = jump_and_walk(30)
     plain = animate_sequence(lambda d, t: d, seq, seq[0], window=3)
     np.testing.assert_allclose((plain.min(1) + plain.max(1)) / 2, 0, atol=1e-6)  # the model sees centred meshes
-    local, move = world_frames(seq, seq[0])
+    local, move = world_frames(seq, seq[0], faces)
     world = local + move[:, None]
     centres = (seq.min(1) + seq.max(1)) / 2
     np.testing.assert_allclose(((world.min(1) + world.max(1)) / 2)[:, :2], centres[:, :2], atol=1e-5)  # same place
     np.testing.assert_allclose(world[..., 2].min(1), seq[..., 2].min(1) - 0.5, atol=1e-5)  # the floor goes to z = 0
-    half, half_move = world_frames(seq, seq[0] * 0.5)  # a half-size target: half the steps, half the jump
+    half, half_move = world_frames(seq, seq[0] * 0.5, faces)  # a half-size target: half the steps, half the jump
     half_world = half + half_move[:, None]
     np.testing.assert_allclose(half_move[:, 0] - half_move[0, 0], 0.5 * (centres[:, 0] - centres[0, 0]), atol=1e-5)
     np.testing.assert_allclose(half_world[..., 2].min(1), 0.5 * (seq[..., 2].min(1) - 0.5), atol=1e-5)
@@ -325,7 +326,7 @@ def test_glb_of_one_frame_has_no_animation(tmp_path):
 @NEEDS_THREE
 def test_threejs_plays_a_jump_upright_where_the_driver_is(tmp_path):
     seq, faces = jump_and_walk(30)
-    local, move = world_frames(seq, seq[0])
+    local, move = world_frames(seq, seq[0], faces)
     glb = write_glb(tmp_path / "jump.glb", local, faces, fps=30, name="jump", translation=move)
     page, shot = play_in_threejs(glb, 15, 30, tmp_path / "www")
     assert page["duration"] == pytest.approx(1.0) and page["morphs"] == 29 and page["meshes"] == 1
@@ -342,7 +343,7 @@ def test_threejs_plays_a_jump_upright_where_the_driver_is(tmp_path):
 @pytest.mark.parametrize("frames_per_mesh", [256, MAX_MORPH_TARGETS])
 def test_threejs_plays_a_clip_longer_than_its_morph_target_limit(tmp_path, frames_per_mesh):
     seq, faces = jump_and_walk(3000)
-    local, move = world_frames(seq, seq[0])
+    local, move = world_frames(seq, seq[0], faces)
     glb = write_glb(tmp_path / "long.glb", local, faces, fps=30, name="long", translation=move,
                     frames_per_mesh=frames_per_mesh)
     page, shot = play_in_threejs(glb, 2600, 30, tmp_path / "www")
@@ -383,7 +384,7 @@ def inputs(tmp_path_factory) -> dict:
 def test_animate_job_end_to_end(inputs, tmp_path, capsys):
     out = tmp_path / "anim"
     animate_main(["--checkpoint", inputs["checkpoint"], "--target", inputs["target"], "--driving", inputs["driving"],
-                  "--out", out, "--fps", 25, "--no-progress", "--batch-size", 14])
+                  "--out", out, "--fps", 25, "--no-progress", "--batch-size", 14, "--force"])  # untrained: it tears
     printed = capsys.readouterr().out
     assert f"{out / 'animation.glb'} (30 frames at 25 fps, 1.20 s)" in printed and "30 frames" in printed
     objs = sorted((out / "frames").glob("*.obj"))
@@ -419,7 +420,7 @@ def test_animate_job_centred_named_in_centimetres_at_the_drivers_fps(inputs, tmp
     target = write_obj(tmp_path / "t.obj", body(3)[0] * 100, body(3)[1])
     out = tmp_path / "o"
     animate_main(["--checkpoint", inputs["checkpoint"], "--target", target, "--driving", drv, "--out", out,
-                  "--unit", "cm", "--center", "--name", "hero", "--no-progress", "--preview-frames", 0])
+                  "--unit", "cm", "--center", "--name", "hero", "--no-progress", "--preview-frames", 0, "--force"])
     back = read_glb(out / "animation.glb")
     assert back["duration"] == pytest.approx(4 / 50) and back["gltf"]["nodes"][0]["name"] == "hero"
     assert "translation" not in back["gltf"]["nodes"][0]
@@ -444,7 +445,7 @@ def test_animate_job_quads_are_triangulated(inputs, tmp_path):
     quad.write_text("v 0 0 0\nv 0.5 0 0\nv 1 0 0\nv 0 0 1\nv 0.5 0 1\nv 1 0 1\nf 1 2 5 4\nf 2 3 6 5\n")
     animate_main(["--checkpoint", inputs["checkpoint"], "--target", quad, "--driving",
                   str(inputs["driving"] / "frame_[0-4].obj"), "--out", tmp_path / "o", "--no-progress",
-                  "--preview-frames", 0])
+                  "--preview-frames", 0, "--force"])
     assert len(list((tmp_path / "o" / "frames").iterdir())) == 5
     assert read_glb(tmp_path / "o" / "animation.glb")["faces"].shape == (4, 3)
 
@@ -605,7 +606,8 @@ def test_animate_refuses_nonempty_out_then_overwrites(inputs, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "old.txt").write_text("old")
-    argv = _argv({**inputs, "driving": str(inputs["driving"] / "frame_[0-2].obj")}, tmp_path) + ["--preview-frames", "0"]
+    argv = _argv({**inputs, "driving": str(inputs["driving"] / "frame_[0-2].obj")}, tmp_path) + ["--preview-frames", "0",
+                                                                                                 "--force"]
     with pytest.raises(UserError, match="not empty"):
         animate_main(argv)
     animate_main(argv + ["--overwrite"])

@@ -314,7 +314,8 @@ def test_export_then_animate_is_the_documented_flow(tiny_run, tmp_path, capsys):
 
     anim = tmp_path / "anim"
     animate_main(["--checkpoint", str(tiny_run / "best.pt"), "--target", str(samples / "target.obj"), "--driving",
-                  str(samples / "driving"), "--out", str(anim), "--no-progress", "--device", "cpu", "--preview-frames", "4"])
+                  str(samples / "driving"), "--out", str(anim), "--no-progress", "--device", "cpu", "--preview-frames", "4",
+                  "--force"])  # two epochs of training: the self-check may refuse its result
     assert len(list((anim / "frames").glob("frame_*.obj"))) == len(driving)
     assert read_glb(anim / "animation.glb")["frames"].shape == (len(driving), bank.num_vertices, 3)
     assert "exported" in capsys.readouterr().out

@@ -77,11 +77,14 @@ def test_shipped_model_animates_targets_of_other_topologies_within_the_same_boun
         assert pmd[variant]["model"] < 1.5 * pmd["same"]["model"] + 1.0, pmd
 
 
-def test_animate_a_foreign_target_with_the_shipped_model(tmp_path, job_main, capsys):
-    """jobs/animate.py without --checkpoint: a decimated body (its own topology) driven by a
-    stream clip; the output keeps the target's vertices and faces, and says it was registered."""
+def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main, capsys):
+    """jobs/animate.py without --checkpoint or --up: a decimated body (its own topology) saved as a GLB
+    in glTF's y-up axes, driven by a stream clip. It is read as y-up, registered in any orientation,
+    trusted by the self-check, and its frames are written in its own (y-up) axes, upright."""
+    import trimesh
+
     from aniformer.cli import run
-    from aniformer.mesh import load_mesh, save_mesh
+    from aniformer.mesh import from_z_up, load_mesh
     from aniformer.synth.variants import remesh
 
     samples, anim = tmp_path / "clip", tmp_path / "anim"
@@ -92,16 +95,91 @@ def test_animate_a_foreign_target_with_the_shipped_model(tmp_path, job_main, cap
     full = _body_model("notoes")
     target = pose_pairs(full, _stream_draws())[2][0, 0]
     vertices, faces = remesh(target, full.faces)
-    save_mesh(tmp_path / "character.obj", vertices, faces)
-    run(job_main("animate"), ["--target", str(tmp_path / "character.obj"), "--driving", str(samples / "driving"),
+    trimesh.Trimesh(from_z_up(vertices, "y"), faces, process=False).export(tmp_path / "character.glb")
+    run(job_main("animate"), ["--target", str(tmp_path / "character.glb"), "--driving", str(samples / "driving"),
                               "--out", str(anim), "--no-progress", "--preview-frames", "0"])
-    assert "registered the target" in capsys.readouterr().err
-    frame, frame_faces = load_mesh(anim / "frames" / "frame_0003.obj")
+    captured = capsys.readouterr()
+    assert "registered the target" in captured.err and "self-check: trusted" in captured.out
+    frame, frame_faces = load_mesh(anim / "frames" / "frame_0000.obj")
     assert frame.shape == vertices.shape and np.array_equal(frame_faces, faces)
     summary = json.loads((anim / "animation.json").read_text())
+    assert summary["up"]["target"] == {"axis": "y", "why": "glTF is y-up"} and summary["trust"]["ok"]
     assert set(summary["registered"]) == {"target"} and summary["registered"]["target"]["rms_m"] < 0.05
+    extent = np.ptp(frame, axis=0)
+    assert extent[1] > max(extent[0], extent[2])  # written y-up, like the file it came from: the body stands along y
     # the pose came from the driver: the result is far from the unmoved character in a squat
-    assert np.abs(center_bbox(frame) - center_bbox(vertices)).max() > 0.05
+    squat = load_mesh(anim / "frames" / "frame_0003.obj")[0]
+    assert np.abs(center_bbox(squat) - center_bbox(from_z_up(vertices, "y"))).max() > 0.05
+
+
+def test_animate_refuses_a_mesh_that_is_not_a_body_unless_forced(tmp_path, job_main, capsys):
+    """A box as the target: the self-check does not trust the result. Exit 2, one line that says why and
+    what to try, nothing written; with --force it is written and animation.json says it was not trusted."""
+    import trimesh
+
+    from aniformer.cli import run
+    from aniformer.synth.stream import _body_model
+
+    body = _body_model(MODEL_TOPOLOGY)
+    clip = body.pose(np.full((3, 6), 0.5, np.float32), np.zeros((3, len(body.bone_labels), 3), np.float32))
+    for k, frame in enumerate(clip):
+        trimesh.Trimesh(frame, body.faces, process=False).export(tmp_path / f"frame_{k}.obj")
+    box = trimesh.creation.box((0.4, 0.3, 1.7)).subdivide().subdivide()
+    box.export(tmp_path / "box.obj")
+    argv = ["--target", str(tmp_path / "box.obj"), "--driving", str(tmp_path / "frame_*.obj"),
+            "--out", str(tmp_path / "anim"), "--no-progress", "--preview-frames", "0", "--no-glb"]
+    with pytest.raises(SystemExit) as exc:
+        run(job_main("animate"), argv)
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert exc.value.code == 2 and error.startswith("error: the self-check does not trust the result")
+    assert "--up" in error and "--force" in error and not (tmp_path / "anim").exists()
+    run(job_main("animate"), [*argv, "--force"])
+    summary = json.loads((tmp_path / "anim" / "animation.json").read_text())
+    assert not summary["trust"]["ok"] and "self-check does not trust" in capsys.readouterr().err
+
+
+def test_self_check_trusts_a_good_registration_and_refuses_injected_failures(stream):
+    """A body lying on its side, decimated to its own mesh: registered in any orientation, its result
+    through the deformation transfer is trusted; the same registration turned backwards, tilted, or with
+    an arm on the other arm is refused."""
+    from aniformer.registration import Correspondence
+    from aniformer.synth.stream import _body_model, pose_pairs
+    from aniformer.synth.variants import remesh
+    from aniformer.transfer import deformation_transfer
+    from aniformer.trust import Trust, injected_failures, registration_checks, stretch_check
+
+    full = _body_model("notoes")
+    driving, _, target = pose_pairs(full, stream.draws("characters", 0, [3]))
+    vertices, faces = remesh(target[0, 0], full.faces)
+    lying = vertices @ np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], np.float32).T  # on its back
+    driver = center_bbox(pose_pairs(_body_model(MODEL_TOPOLOGY), stream.draws("characters", 0, [3]))[0][0])
+    good = Correspondence(lying, faces, MODEL_TOPOLOGY)
+
+    def trust(fit):
+        moved = deformation_transfer(torch.from_numpy(driver[None]), torch.from_numpy(fit.template[None]),
+                                     torch.from_numpy(fit.template_faces))[0].numpy()
+        return Trust((*registration_checks(fit), stretch_check(fit.from_template(moved), fit.vertices, fit.faces)))
+
+    assert trust(good).ok, trust(good).to_dict()
+    for name, broken in injected_failures(good).items():
+        verdict = trust(Correspondence(lying, faces, MODEL_TOPOLOGY, fitted=broken))
+        assert not verdict.ok, (name, verdict.to_dict())
+
+
+def test_up_axis_is_the_one_the_body_stands_along():
+    """detect_up: a standing body says z, the same body in y-up axes says y, a body lying along x keeps the
+    format's convention."""
+    from aniformer.mesh import from_z_up
+    from aniformer.registration import detect_up
+    from aniformer.synth.stream import _body_model
+
+    body = _body_model(MODEL_TOPOLOGY)
+    standing = body.pose(np.full((1, 6), 0.5, np.float32), np.zeros((1, len(body.bone_labels), 3), np.float32))
+    assert detect_up(standing, body.faces, "y")[0] == "z"
+    assert detect_up(from_z_up(standing, "y"), body.faces, "z")[0] == "y"
+    lying = standing[..., [2, 1, 0]] * [1, 1, -1]  # head along x
+    assert detect_up(lying, body.faces, "z") == ("z", "the format's convention: the body does not stand along y or z")
+    assert detect_up(lying, body.faces, "y")[0] == "y"
 
 
 def _stream_draws():

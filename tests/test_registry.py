@@ -106,7 +106,7 @@ def test_animate_by_registered_name_as_from_the_checkpoint_file(in_store, tmp_pa
     for k, checkpoint in enumerate(("models:/aniformer/latest", "models:/aniformer/1", str(in_store["checkpoint"]))):
         out = tmp_path / f"anim{k}"
         animate_main(["--checkpoint", checkpoint, "--target", tmp_path / "target.obj", "--driving", tmp_path / "driving",
-                      "--out", out, "--no-glb", "--preview-frames", 0, "--no-progress"])
+                      "--out", out, "--no-glb", "--preview-frames", 0, "--no-progress", "--force"])
         assert json.loads((out / "animation.json").read_text())["checkpoint"] == checkpoint
         frames.append([p.read_text() for p in sorted((out / "frames").glob("*.obj"))])
     assert len(frames[0]) == 6 and frames[0] == frames[1] == frames[2]

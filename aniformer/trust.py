@@ -1,0 +1,189 @@
+"""Whether to trust a registration and the animation made through it: never ship a shredded mesh.
+
+A small surface distance does not mean a right correspondence: a body fitted facing backwards, or
+with an arm lying along the torso, can be within 2 cm of the mesh on average. Three views that a
+wrong correspondence cannot all pass (measured in docs/results.md#the-self-check):
+
+- ``part gap``: per body part (head, torso, upper arms, forearms, hands, thighs, shins, feet),
+  the RMS distance of the fitted Anny body's vertices to the mesh, over the body's height: a limb
+  fitted where the mesh has none, or a foot pointing backwards, is far from the surface;
+- ``uncovered``: the share of the mesh's surface farther from the template than
+  ``UNCOVERED_DISTANCE`` of the height (a mesh limb no template limb lies on: it would be carried
+  by the wrong part);
+- ``flipped``: the share of the fitted body's vertices whose normal points against the mesh's
+  surface there (a template turned inside out, or a limb through the torso);
+- ``stretch`` (of a result): the share of the mesh's edge length, in the worst frame, stretched or
+  squashed beyond a factor ``STRETCH_FACTOR`` against the same mesh at rest (vertices carried across
+  body parts); for a registered driver the same on the template read from every frame.
+
+Each check's limit sits between the good and the deliberately broken cases (``injected_failures``)
+of the calibration on validation pairs (``bench/trust_calibration.py``).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from aniformer.transfer import mesh_edges
+
+PART_OF_BONE = (  # bone-name prefix -> body part; sides come from the bone's .L / .R
+    ("neck", "head"), ("head", "head"), ("eye", "head"), ("upperarm", "upper arm"), ("shoulder", "upper arm"),
+    ("lowerarm", "forearm"), ("wrist", "hand"), ("finger", "hand"), ("metacarpal", "hand"),
+    ("upperleg", "thigh"), ("lowerleg", "shin"), ("foot", "foot"), ("toe", "foot"),
+)
+UNCOVERED_DISTANCE = 0.06  # of the body's height (~10 cm): beyond it, a mesh point has no template part
+STRETCH_FACTOR = 3.0  # a tear; the deepest natural joint bends reach 1 % of the edge length beyond it (369 v)
+LIMITS = {"part gap": 0.035, "uncovered": 0.02, "flipped": 0.08, "stretch": 0.02}
+HINTS = {
+    "part gap": "a body part of the fit is off the mesh",
+    "uncovered": "part of the mesh has no body part of the fit on it",
+    "flipped": "the fit's surface turns against the mesh's",
+    "stretch": "the result tears the mesh (vertices carried across body parts)",
+}
+
+
+@dataclass(frozen=True)
+class Check:
+    """One trust check: its value, the limit it must not pass, and where it was worst."""
+
+    name: str
+    value: float
+    limit: float
+    where: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.value <= self.limit)
+
+    def describe(self) -> str:
+        where = f" ({self.where})" if self.where else ""
+        return f"{self.name} {self.value:.3f} > {self.limit:.3f}{where}: {HINTS[self.name]}"
+
+
+@functools.cache
+def part_labels(topology: str) -> tuple[np.ndarray, tuple[str, ...]]:
+    """(part index per template vertex, part names) of an Anny topology, from each vertex's
+    strongest bone."""
+    from aniformer.synth.bodies import BodyModel
+
+    body = BodyModel(topology)
+    model = body._model
+    weights, bones = model.vertex_bone_weights.numpy(), model.vertex_bone_indices.numpy()
+    strongest = bones[np.arange(len(bones)), weights.argmax(1)]
+    names = []
+    for label in body.bone_labels:
+        part = next((p for prefix, p in PART_OF_BONE if label.startswith(prefix)), "torso")
+        side = label.rsplit(".", 1)[1] if label.endswith((".L", ".R")) and part not in ("torso", "head") else ""
+        names.append(f"{part} {side}".strip())
+    parts = tuple(dict.fromkeys(names))
+    return np.array([parts.index(names[b]) for b in strongest]), parts
+
+
+def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+
+
+def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    areas = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    normals = np.zeros_like(vertices, dtype=np.float64)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], areas)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+
+
+def registration_checks(correspondence, role: str = "") -> list[Check]:
+    """``part gap``, ``uncovered`` and ``flipped`` of an ``aniformer.registration.Correspondence`` (of the
+    mesh of ``role``: target, driver)."""
+    height = correspondence.fitted.height
+    parts, names = part_labels(correspondence.topology)
+    gaps = np.array([np.sqrt(np.square(correspondence.template_gap[parts == k]).mean()) if (parts == k).any() else 0.0
+                     for k in range(len(names))]) / height
+    worst = int(gaps.argmax())
+    faces, vertices = correspondence.faces, correspondence.vertices
+    area = np.linalg.norm(np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                                   vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1)
+    far = correspondence.mesh_gap[faces].mean(1) > UNCOVERED_DISTANCE * height
+    uncovered = float(area[far].sum() / max(area.sum(), 1e-12))
+    template_normals = _vertex_normals(correspondence.fitted.vertices.astype(np.float64), correspondence.template_faces)
+    mesh_normals = _face_normals(vertices.astype(np.float64), faces)[correspondence.template_on_mesh.face]
+    flipped = float(((template_normals * mesh_normals).sum(1) < 0).mean())
+    return [Check("part gap", float(gaps[worst]), LIMITS["part gap"], f"{role} {names[worst]}".strip()),
+            Check("uncovered", uncovered, LIMITS["uncovered"], role),
+            Check("flipped", flipped, LIMITS["flipped"], role)]
+
+
+def stretch_check(frames: np.ndarray, rest: np.ndarray, faces: np.ndarray, what: str = "result") -> Check:
+    """``stretch`` of ``frames (T, N, 3)`` against ``rest (N, 3)`` of one mesh: the worst frame's share of
+    edge length beyond ``STRETCH_FACTOR`` either way."""
+    i, j = mesh_edges(np.asarray(faces, np.int64), rest.shape[0])
+    rest_length = np.linalg.norm(rest[i] - rest[j], axis=1) + 1e-9
+    worst, worst_frame = 0.0, 0
+    for t, frame in enumerate(frames):
+        ratio = (np.linalg.norm(frame[i] - frame[j], axis=1) + 1e-9) / rest_length
+        share = float(rest_length[(ratio > STRETCH_FACTOR) | (ratio < 1 / STRETCH_FACTOR)].sum() / rest_length.sum())
+        if share > worst:
+            worst, worst_frame = share, t
+    return Check("stretch", worst, LIMITS["stretch"], f"{what}, frame {worst_frame}")
+
+
+@dataclass(frozen=True)
+class Trust:
+    """The checks of one animation; ``ok`` when every check is within its limit."""
+
+    checks: tuple[Check, ...]
+
+    @property
+    def ok(self) -> bool:
+        return all(c.ok for c in self.checks)
+
+    def reason(self) -> str:
+        return "; ".join(c.describe() for c in self.checks if not c.ok)
+
+    def to_dict(self) -> dict:
+        return {"ok": self.ok, "checks": [{**asdict(c), "ok": c.ok} for c in self.checks]}
+
+
+def animation_trust(result: np.ndarray, target: np.ndarray, target_faces: np.ndarray, target_fit=None,
+                    driver_trust: Trust | None = None) -> Trust:
+    """The self-check of an animation ``result (T, N, 3)`` of ``target (N, 3)``: the driver's registration
+    (``driver_trust``, from ``aniformer.registration.register_clip``), the target's (``target_fit``, a
+    ``Correspondence``), each where there was one, and the result's stretch."""
+    checks = [*(driver_trust.checks if driver_trust is not None else ()),
+              *(registration_checks(target_fit, "target") if target_fit is not None else ())]
+    return Trust((*checks, stretch_check(result, target, target_faces)))
+
+
+def injected_failures(correspondence) -> dict[str, object]:
+    """Deliberately broken fits of a good registration, to calibrate and test the checks, as
+    ``aniformer.registration.BodyFit`` by name: ``heading`` (turned 180 degrees about its own
+    feet-to-head axis: facing backwards), ``tilt`` (turned 90 degrees about a horizontal axis: a y-up
+    file read as z-up), ``swapped arm`` (the left arm's vertices on their mirror partners of the right arm)."""
+    import roma
+    import scipy.spatial
+    import torch
+
+    from aniformer.registration import BodyFit, body_axis
+    from aniformer.synth.bodies import BodyModel
+
+    fitted = correspondence.fitted
+    centre = fitted.vertices.mean(0)
+
+    def turned(axis: np.ndarray, angle: float) -> BodyFit:
+        rotation = roma.rotvec_to_rotmat(torch.from_numpy(axis / np.linalg.norm(axis) * angle)).numpy()
+        return BodyFit(((fitted.vertices - centre) @ rotation.T + centre).astype(np.float32), fitted.height, fitted.loss)
+
+    up = body_axis(fitted.vertices, correspondence.template_faces).astype(np.float64)
+    across = np.cross(up, [0.0, 0.0, 1.0] if abs(up[2]) < 0.9 else [1.0, 0.0, 0.0])
+    body = BodyModel(correspondence.topology)
+    rest = body.pose(np.full((1, 6), 0.5, np.float32), np.zeros((1, len(body.bone_labels), 3), np.float32))[0]
+    _, mirror = scipy.spatial.cKDTree(rest * [-1, 1, 1]).query(rest)  # Anny is symmetric in x at rest
+    parts, names = part_labels(correspondence.topology)
+    left_arm = np.isin(parts, [names.index(n) for n in ("upper arm L", "forearm L", "hand L")])
+    swapped = fitted.vertices.copy()
+    swapped[left_arm] = swapped[mirror[left_arm]]
+    return {"heading": turned(up, np.pi), "tilt": turned(across, np.pi / 2),
+            "swapped arm": BodyFit(swapped, fitted.height, fitted.loss)}
