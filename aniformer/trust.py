@@ -14,7 +14,10 @@ wrong correspondence cannot all pass (measured in docs/results.md#the-self-check
   surface there (a template turned inside out, or a limb through the torso);
 - ``stretch`` (of a result): the share of the mesh's edge length, in the worst frame, stretched or
   squashed beyond a factor ``STRETCH_FACTOR`` against the same mesh at rest (vertices carried across
-  body parts); for a registered driver the same on the template read from every frame.
+  body parts); for a registered driver the same on the template read from every frame;
+- ``near limits``: per registered mesh, its part gap, its flipped share and the result's stretch,
+  each as a share of its limit, summed: each view alone is noisy, and a wrong fit was seen just
+  under all three limits at once.
 
 Each check's limit sits between the good and the deliberately broken cases (``injected_failures``)
 of the calibration on validation pairs (``bench/trust_calibration.py``).
@@ -36,12 +39,13 @@ PART_OF_BONE = (  # bone-name prefix -> body part; sides come from the bone's .L
 )
 UNCOVERED_DISTANCE = 0.06  # of the body's height (~10 cm): beyond it, a mesh point has no template part
 STRETCH_FACTOR = 3.0  # a tear; the deepest natural joint bends reach 1 % of the edge length beyond it (369 v)
-LIMITS = {"part gap": 0.035, "uncovered": 0.02, "flipped": 0.08, "stretch": 0.02}
+LIMITS = {"part gap": 0.025, "uncovered": 0.02, "flipped": 0.08, "stretch": 0.02, "near limits": 2.2}
 HINTS = {
     "part gap": "a body part of the fit is off the mesh",
     "uncovered": "part of the mesh has no body part of the fit on it",
     "flipped": "the fit's surface turns against the mesh's",
     "stretch": "the result tears the mesh (vertices carried across body parts)",
+    "near limits": "part gap, flipped and stretch are all close to their limits (summed as shares of them)",
 }
 
 
@@ -151,10 +155,15 @@ def animation_trust(result: np.ndarray, target: np.ndarray, target_faces: np.nda
                     driver_trust: Trust | None = None) -> Trust:
     """The self-check of an animation ``result (T, N, 3)`` of ``target (N, 3)``: the driver's registration
     (``driver_trust``, from ``aniformer.registration.register_clip``), the target's (``target_fit``, a
-    ``Correspondence``), each where there was one, and the result's stretch."""
-    checks = [*(driver_trust.checks if driver_trust is not None else ()),
-              *(registration_checks(target_fit, "target") if target_fit is not None else ())]
-    return Trust((*checks, stretch_check(result, target, target_faces)))
+    ``Correspondence``), each where there was one, the result's stretch, and ``near limits``."""
+    registered = [list(driver_trust.checks)] if driver_trust is not None else []
+    if target_fit is not None:
+        registered.append(registration_checks(target_fit, "target"))
+    stretch = stretch_check(result, target, target_faces)
+    near = [Check("near limits", stretch.value / stretch.limit + sum(c.value / c.limit for c in checks
+                                                                      if c.name in ("part gap", "flipped")),
+                  LIMITS["near limits"], checks[0].where.split(" ")[0]) for checks in registered]
+    return Trust((*(c for checks in registered for c in checks), stretch, *near))
 
 
 def injected_failures(correspondence) -> dict[str, object]:
