@@ -27,7 +27,7 @@ from aniformer.metrics import PMD_SCALE
 from aniformer.registration import Correspondence
 from aniformer.synth.stream import StreamPairs
 from aniformer.synth.variants import variant_pairs
-from aniformer.trust import Trust, injected_failures, registration_checks, stretch_check
+from aniformer.trust import animation_trust, injected_failures
 
 VARIANTS = ("remeshed", "posed", "rotated")
 
@@ -36,7 +36,7 @@ def _score(fit: Correspondence, predict, driving: np.ndarray, case: dict, frames
     faces = torch.from_numpy(fit.template_faces)
     posed = predict(torch.from_numpy(driving[None]), torch.from_numpy(fit.template[None]), faces)[0].numpy()
     result = fit.from_template(posed)
-    trust = Trust((*registration_checks(fit), stretch_check(result, fit.vertices, fit.faces)))
+    trust = animation_trust(result, fit.vertices, fit.faces, fit)
     truth = case["ground_truth"][frames]
     pmd = float(np.square(center_bbox(result) - truth).sum(-1).mean() * PMD_SCALE)
     copy = float(np.square(case["copy_driver"][frames] - truth).sum(-1).mean() * PMD_SCALE)
