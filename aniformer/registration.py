@@ -191,7 +191,7 @@ def _chamfer(a: torch.Tensor, a_normals: np.ndarray, b: _Cloud) -> torch.Tensor:
     return to_b + to_a
 
 
-def _normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(vertex normals ``(..., V, 3)``, face normals ``(..., F, 3)``) of meshes, unit length."""
     v = torch.from_numpy(np.asarray(vertices, np.float64))
     corners = v[..., torch.from_numpy(faces), :]
@@ -235,7 +235,7 @@ class _Template:
     def samples(self, vertices: torch.Tensor) -> tuple[torch.Tensor, np.ndarray]:
         """(the vertices and the surface samples ``(B, V + S, 3)``, their normals ``(B, V + S, 3)`` without grad)."""
         points = torch.cat([vertices, (vertices[:, self.sample_faces] * self.sample_weights[..., None]).sum(2)], 1)
-        vertex_normals, face_normals = _normals(vertices.detach().numpy(), self.faces)
+        vertex_normals, face_normals = normals(vertices.detach().numpy(), self.faces)
         return points, np.concatenate([vertex_normals, face_normals[:, self.sample_face_index]], 1)
 
 
@@ -304,7 +304,7 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
     mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), faces, process=False)
     centre = (mesh.bounds[0] + mesh.bounds[1]) / 2
     samples, sample_faces = trimesh.sample.sample_surface(mesh, MESH_SAMPLES, seed=seed)
-    vertex_normals, face_normals = _normals(mesh.vertices, mesh.faces)
+    vertex_normals, face_normals = normals(mesh.vertices, mesh.faces)
     outward = np.sign(((mesh.triangles_center - centre) * face_normals * mesh.area_faces[:, None]).sum()) or 1.0
     cloud = _Cloud.of(np.concatenate([samples, mesh.vertices]) - centre,
                       outward * np.concatenate([face_normals[sample_faces], vertex_normals]))  # faces wound inwards too

@@ -86,19 +86,6 @@ def part_labels(topology: str) -> tuple[np.ndarray, tuple[str, ...]]:
     return np.array([parts.index(names[b]) for b in strongest]), parts
 
 
-def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-
-
-def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    areas = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-    normals = np.zeros_like(vertices, dtype=np.float64)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], areas)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-
-
 def registration_checks(correspondence, role: str = "") -> list[Check]:
     """``part gap``, ``uncovered`` and ``flipped`` of an ``aniformer.registration.Correspondence`` (of the
     mesh of ``role``: target, driver)."""
@@ -112,8 +99,11 @@ def registration_checks(correspondence, role: str = "") -> list[Check]:
                                    vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1)
     far = correspondence.mesh_gap[faces].mean(1) > UNCOVERED_DISTANCE * height
     uncovered = float(area[far].sum() / max(area.sum(), 1e-12))
-    template_normals = _vertex_normals(correspondence.fitted.vertices.astype(np.float64), correspondence.template_faces)
-    mesh_normals = _face_normals(vertices.astype(np.float64), faces)[correspondence.template_on_mesh.face]
+    from aniformer.registration import normals
+
+    template_normals, _ = normals(correspondence.fitted.vertices, correspondence.template_faces)
+    _, mesh_normals = normals(vertices, faces)
+    mesh_normals = mesh_normals[correspondence.template_on_mesh.face]
     flipped = float(((template_normals * mesh_normals).sum(1) < 0).mean())
     return [Check("part gap", float(gaps[worst]), LIMITS["part gap"], f"{role} {names[worst]}".strip()),
             Check("uncovered", uncovered, LIMITS["uncovered"], role),
