@@ -86,7 +86,7 @@ def render_animation_gif(
     panel_px: int = 240,
     view: tuple[float, float] = (10.0, -60.0),
     progress=None,
-    max_faces: int = 50_000,
+    max_faces: int = 5_000,
 ) -> Path:
     """An animated GIF of ``panels`` of (label, vertices (N, V, 3), faces) side by side (e.g. driver | result).
 
@@ -94,7 +94,8 @@ def render_animation_gif(
     are drawn (all if None); each GIF frame lasts as long as the frames it stands for at ``fps``, so
     the preview keeps real time. Each panel keeps one set of axes limits over the whole sequence.
     ``progress(1)`` is called after every drawn frame. Meshes with more than ``max_faces`` faces
-    are drawn with a fixed random subset of them (matplotlib draws ~10^4-10^5 polygons per second).
+    are drawn decimated to that many (``preview_mesh``): matplotlib draws ~10^4-10^5 polygons per
+    second, and a 240-pixel panel shows no more.
     Written to a temporary name, then renamed.
     """
     path = Path(path)
@@ -103,9 +104,7 @@ def render_animation_gif(
     if len(lengths) != 1:
         raise ValueError(f"panels have different frame counts: {sorted(lengths)}")
     n = lengths.pop()
-    rng = np.random.default_rng(0)
-    panels = [(label, vertices, faces if len(faces) <= max_faces
-               else faces[np.sort(rng.choice(len(faces), max_faces, replace=False))])
+    panels = [(label, vertices, faces) if len(faces) <= max_faces else (label, *preview_mesh(vertices, faces, max_faces))
               for label, vertices, faces in panels]
     count = n if max_frames is None else max(1, min(max_frames, n))
     chosen = np.linspace(0, n - 1, count).round().astype(int)
@@ -115,6 +114,18 @@ def render_animation_gif(
         images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration_ms, loop=0,
                        optimize=False)
     return path
+
+
+def preview_mesh(frames: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """``frames (N, V, 3)`` of a mesh as frames of its quadric decimation to ``max_faces`` faces: the decimated
+    first frame's vertices ride the closest points of the mesh (barycentric), so every frame decimates alike."""
+    import trimesh
+
+    from aniformer.registration import closest_points
+
+    first = np.asarray(frames[0], np.float64)
+    decimated = trimesh.Trimesh(first, faces, process=False).simplify_quadric_decimation(face_count=max_faces)
+    return closest_points(decimated.vertices, first, faces).on(frames, faces), np.asarray(decimated.faces, np.int64)
 
 
 def _gif_frames(panels: list[tuple[str, np.ndarray, np.ndarray]], chosen: np.ndarray, panel_px: int,

@@ -31,6 +31,7 @@ match its config) stops with one line, exit 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import sys
@@ -44,7 +45,6 @@ from aniformer.errors import UserError
 from aniformer.files import claim_output, releases_locks, staged_output_dir
 from aniformer.glb import FRAMES_PER_MESH, MAX_GLB_BYTES, MAX_MORPH_TARGETS
 from aniformer.mesh import DEFAULT_MAX_VERTICES, GLTF_SUFFIXES, UNITS, UP_AXES
-from pipeline.registry import resolve_checkpoint
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -159,7 +159,17 @@ def input_axes(args, files, target_faces, target, driving, driving_faces) -> dic
     return axes
 
 
-def model_inputs(args, state: dict, config, driving, driving_faces, target, target_faces):
+@contextlib.contextmanager
+def timed(seconds: dict, stage: str):
+    """Adds the block's wall time to ``seconds[stage]`` (animation.json's per-stage breakdown)."""
+    began = time.perf_counter()
+    try:
+        yield
+    finally:
+        seconds[stage] = round(seconds.get(stage, 0.0) + time.perf_counter() - began, 3)
+
+
+def model_inputs(args, state: dict, config, driving, driving_faces, target, target_faces, seconds: dict):
     """(faces, driving, target) on the topology the model runs on, the registrations that carry meshes of
     other topologies there (`aniformer.registration.Correspondence`, by role; none for an absolute-output
     model) and the driver's self-check where it was registered (`aniformer.trust.Trust`, else None)."""
@@ -178,61 +188,64 @@ def model_inputs(args, state: dict, config, driving, driving_faces, target, targ
     template = BodyModel(topology)
     faces = template.faces
     if not np.array_equal(driving_faces, faces):  # another vertex count, order or connectivity
-        began = time.perf_counter()
-        registrations["driver"], driver_trust = register_clip(driving, driving_faces, topology)
-        _report_fit("driver", registrations["driver"], template, began)
+        with timed(seconds, "register driver"):
+            registrations["driver"], driver_trust = register_clip(driving, driving_faces, topology)
+        _report_fit("driver", registrations["driver"], template, seconds["register driver"])
     if not np.array_equal(target_faces, faces):
-        began = time.perf_counter()
-        registrations["target"] = Correspondence(target, target_faces, topology)
-        _report_fit("target", registrations["target"], template, began)
+        with timed(seconds, "register target"):
+            registrations["target"] = Correspondence(target, target_faces, topology)
+        _report_fit("target", registrations["target"], template, seconds["register target"])
     model_driving = registrations["driver"].to_template(driving) if "driver" in registrations else driving
     model_target = registrations["target"].template if "target" in registrations else target
     return faces, model_driving, model_target, registrations, driver_trust
 
 
-def _report_fit(role: str, fit, template, began: float) -> None:
+def _report_fit(role: str, fit, template, seconds: float) -> None:
     print(f"registered the {role} ({len(fit.vertices):,} vertices) onto Anny {template.topology} "
           f"({template.num_vertices:,} vertices): {fit.rms * 1000:.1f} mm RMS surface distance, "
-          f"{time.perf_counter() - began:.1f} s", file=sys.stderr)
+          f"{seconds:.1f} s", file=sys.stderr)
 
 
 def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local, translation, target_faces) -> None:
-    """frames/*.obj, animation.glb, preview.gif and animation.json, staged: `out` appears complete or not at all."""
+    """frames/*.obj, animation.glb, preview.gif and animation.json, staged: `out` appears complete or not at all.
+    Each one's time goes into ``summary["seconds"]``."""
     from tqdm import tqdm
 
     from aniformer.animate import write_obj
     from aniformer.glb import write_glb
     from aniformer.mesh import center_bbox, from_z_up
 
-    written = time.perf_counter()
+    seconds = summary["seconds"]
     world = local if translation is None else local + translation[:, None]
     fps, name = summary["fps"], summary["name"]
     with staged_output_dir(out, args.overwrite) as tmp:
         digits = max(4, len(str(len(local) - 1)))
         (tmp / "frames").mkdir()
         in_target_axes = from_z_up(world, summary["up"]["target"]["axis"]) / UNITS[args.unit]
-        for k, vertices in enumerate(tqdm(in_target_axes, unit="obj", desc="write OBJ",
-                                          disable=args.no_progress, file=sys.stderr)):
-            write_obj(tmp / "frames" / f"frame_{k:0{digits}d}.obj", vertices, target_faces)
+        with timed(seconds, "write OBJ"):
+            for k, vertices in enumerate(tqdm(in_target_axes, unit="obj", desc="write OBJ",
+                                              disable=args.no_progress, file=sys.stderr)):
+                write_obj(tmp / "frames" / f"frame_{k:0{digits}d}.obj", vertices, target_faces)
         if not args.no_glb:
-            write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
-                      frames_per_mesh=args.frames_per_mesh,
-                      extras={"checkpoint": str(args.checkpoint), "driving": str(args.driving)})
+            with timed(seconds, "write GLB"):
+                write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
+                          frames_per_mesh=args.frames_per_mesh,
+                          extras={"checkpoint": str(args.checkpoint), "driving": str(args.driving)})
         if args.preview_frames:
             from aniformer.render import render_animation_gif
 
             shown = center_bbox(driving) if args.center else driving
             with tqdm(total=min(args.preview_frames, len(local)), unit="frame", desc="preview",
-                      disable=args.no_progress, file=sys.stderr) as bar:
+                      disable=args.no_progress, file=sys.stderr) as bar, timed(seconds, "preview"):
                 render_animation_gif([("driver", shown, driving_faces), ("result", world, target_faces)],
                                      tmp / "preview.gif", fps=fps, max_frames=args.preview_frames,
                                      progress=bar.update)
-        summary["seconds"]["write"] = round(time.perf_counter() - written, 3)
         (tmp / "animation.json").write_text(json.dumps(summary, indent=2) + "\n")
 
 
-def infer(args, model, state: dict, driving, driving_faces, target, target_faces, device):
-    """The target's animated frames (sliding windows of the model) and how they were made:
+def infer(args, model, state: dict, driving, driving_faces, target, target_faces, device, seconds: dict):
+    """The target's animated frames (sliding windows of the model) and how they were made (each stage's
+    time into ``seconds``):
     (frames, combine, windows, input_center, registrations, the self-check's ``Trust``, the size of the
     target's body over the driver's)."""
     import numpy as np
@@ -245,20 +258,24 @@ def infer(args, model, state: dict, driving, driving_faces, target, target_faces
     config = model.config
     input_center = args.input_center or (state["config"].get("data") or {}).get("center", "mesh")
     faces, model_driving, model_target, registrations, driver_trust = model_inputs(args, state, config, driving,
-                                                                              driving_faces, target, target_faces)
+                                                                              driving_faces, target, target_faces,
+                                                                              seconds)
     model = functools.partial(model.to(device), faces=torch.from_numpy(np.asarray(faces, np.int64)).to(device))
     outputs = config.output_frames()
     combine = args.combine if outputs == slice(None) else "center"
     total = num_windows(len(driving), config.window, outputs, combine)
-    with tqdm(total=total, unit="window", desc="animate", disable=args.no_progress, file=sys.stderr) as bar:
+    with tqdm(total=total, unit="window", desc="animate", disable=args.no_progress, file=sys.stderr) as bar, \
+            timed(seconds, "network"):
         result = animate_sequence(model, model_driving, model_target, window=config.window, outputs=outputs,
                                   combine=combine, center=input_center, batch_size=args.batch_size, device=device,
                                   progress=bar.update, force=args.force)
     if "target" in registrations:
-        result = registrations["target"].from_template(result)
+        with timed(seconds, "carry back"):
+            result = registrations["target"].from_template(result)
     if not np.isfinite(result).all():
         raise UserError(f"the model produced NaN or infinite coordinates ({args.checkpoint}: diverged weights?)")
-    trust = animation_trust(result, target, target_faces, registrations.get("target"), driver_trust)
+    with timed(seconds, "self-check"):
+        trust = animation_trust(result, target, target_faces, registrations.get("target"), driver_trust)
     scale = body_scale(target, target_faces, driving[0], driving_faces)
     return result, combine, total, input_center, registrations, trust, scale
 
@@ -283,14 +300,20 @@ def main(argv: list[str]) -> None:
     start = time.perf_counter()
     files, target, target_faces, fps, name = load_inputs(args)  # bad input fails before any work
     with tempfile.TemporaryDirectory(prefix="aniformer-animate-") as scratch:
-        model, state = model_from_checkpoint(resolve_checkpoint(checkpoint, Path(scratch)))
+        local = Path(checkpoint).expanduser()
+        if not local.exists():  # a run id or model URI: only then MLflow (~1.5 s of imports)
+            from pipeline.registry import resolve_checkpoint
+
+            local = resolve_checkpoint(checkpoint, Path(scratch))
+        model, state = model_from_checkpoint(local)
     with tqdm(total=len(files), unit="frame", desc="load driving", disable=args.no_progress, file=sys.stderr) as bar:
         driving, driving_faces = load_driving(files, args.max_vertices, args.unit, progress=bar.update)
     axes = input_axes(args, files, target_faces, target, driving, driving_faces)
     target, driving = to_z_up(target, axes["target"][0]), to_z_up(driving, axes["driver"][0])
     loaded = time.perf_counter()
+    seconds = {"load": round(loaded - start, 3)}
     result, combine, total, input_center, registrations, trust, scale = infer(args, model, state, driving, driving_faces,
-                                                                              target, target_faces, device)
+                                                                              target, target_faces, device, seconds)
     if not trust.ok and not args.force:
         raise UserError(f"the self-check does not trust the result, nothing written: {trust.reason()}; check the "
                         f"inputs' up axis (read as {axes['target'][0]} for the target, {axes['driver'][0]} for the "
@@ -311,7 +334,7 @@ def main(argv: list[str]) -> None:
         "trust": trust.to_dict(),
         "output_centred": args.center,
         "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
-        "seconds": {"load": round(loaded - start, 3), "inference": round(inferred - loaded, 3)},
+        "seconds": {**seconds, "inference": round(inferred - loaded, 3)},
     }
     write_outputs(out, args, summary, driving, driving_faces, local, translation, target_faces)
     seconds = time.perf_counter() - start

@@ -360,6 +360,27 @@ def test_write_obj_is_read_back(tmp_path):
     np.testing.assert_array_equal(loaded.faces, f)
 
 
+def test_write_obj_writes_plain_v_and_f_lines(tmp_path):
+    vertices, faces = np.array([[0.5, -1.25, 2.0], [1e-7, 3.0, -0.0000004], [1, 2, 3]]), np.array([[0, 1, 2], [2, 1, 0]])
+    for _ in range(2):  # the second write takes the faces' block from the cache
+        text = write_obj(tmp_path / "t.obj", vertices, faces).read_text()
+        assert text == ("# aniformer\nv 0.500000 -1.250000 2.000000\nv 0.000000 3.000000 -0.000000\n"
+                        "v 1.000000 2.000000 3.000000\nf 1 2 3\nf 3 2 1\n")
+
+
+def test_preview_mesh_decimates_every_frame_alike():
+    from aniformer.render import preview_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=4)  # 5,120 faces
+    shift = np.array([0.1, -0.2, 0.3])
+    frames = np.stack([sphere.vertices, sphere.vertices + shift, 2 * sphere.vertices])
+    decimated, faces = preview_mesh(frames, np.asarray(sphere.faces), 500)
+    assert len(faces) <= 500 and decimated.shape == (3, faces.max() + 1, 3)
+    np.testing.assert_allclose(decimated[1], decimated[0] + shift, atol=1e-9)
+    np.testing.assert_allclose(decimated[2], 2 * decimated[0], atol=1e-9)
+    assert np.abs(np.linalg.norm(decimated[0], axis=1) - 1).max() < 0.01  # on the sphere
+
+
 # --------------------------------------------------------------------------------------------
 # jobs/animate.py
 # --------------------------------------------------------------------------------------------
