@@ -12,18 +12,22 @@ from __future__ import annotations
 import json
 import os
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from aniformer.files import atomic_path
 
-_FLOAT, _UINT = 5126, 5125
+_FLOAT, _UINT, _USHORT = 5126, 5125, 5123
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 _GLB_MAGIC, _JSON_CHUNK, _BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
 FRAMES_PER_MESH = 256  # frames per mesh by default: WebGL2 guarantees 256 texture-array layers
 MAX_MORPH_TARGETS = 2048  # three.js keeps a mesh's morph targets in one texture array; beyond this it freezes
 MAX_GLB_BYTES = 2**31 - 1  # browsers (three.js) load a GLB into one ArrayBuffer; the GLB header counts in uint32
+
+
+GLTF_AXES = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # to_gltf_axes as a rotation matrix
 
 
 def to_gltf_axes(vertices: np.ndarray) -> np.ndarray:
@@ -216,9 +220,7 @@ def _document(buf: _Buffer, animation: _Animation, nodes: list[dict], meshes: li
         "scenes": [{"name": name, "nodes": [0], "extras": {"frames": N, "fps": float(fps), **(extras or {})}}],
         "nodes": nodes,
         "meshes": meshes,
-        "materials": [{"name": "body", "doubleSided": True,
-                       "pbrMetallicRoughness": {"baseColorFactor": [0.62, 0.70, 0.86, 1.0],
-                                                "metallicFactor": 0.0, "roughnessFactor": 0.8}}],
+        "materials": [_MATERIAL],
         "buffers": [{"byteLength": buf.length}],
         "bufferViews": buf.views,
         "accessors": buf.accessors,
@@ -227,6 +229,75 @@ def _document(buf: _Buffer, animation: _Animation, nodes: list[dict], meshes: li
         gltf["animations"] = [{"name": name, "samplers": animation.samplers, "channels": animation.channels,
                                "extras": {"fps": float(fps), "frames": N}}]
     return gltf
+
+
+_MATERIAL = {"name": "body", "doubleSided": True,
+             "pbrMetallicRoughness": {"baseColorFactor": [0.62, 0.70, 0.86, 1.0], "metallicFactor": 0.0,
+                                      "roughnessFactor": 0.8}}
+
+
+def write_rigged_glb(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, rig, motion,
+                     fps: float = 30.0, name: str = "aniformer", extras: dict | None = None) -> Path:
+    """Write a skinned mesh and its clip as a GLB, atomically: ``vertices (V, 3)`` (z up, metres: the bind
+    pose) and ``faces``, ``rig`` (``aniformer.rig.Rig``: joints, bind transforms, 4 weights per vertex) and
+    ``motion`` (``aniformer.rig.RigMotion``). y up; the mesh node (``name``) and the skeleton's root joint
+    are the scene's two roots; each joint keys its local rotation at every frame and the root joint its
+    translation, STEP at k / fps plus an end key at N / fps, as ``write_glb``'s clip. No morph targets."""
+    frames = len(motion.rotations)
+    _checked_frames(motion.root[:, None], fps)
+    turn = np.eye(4)
+    turn[:3, :3] = GLTF_AXES
+    local = turn @ rig.local_bind() @ turn.T
+    buf = _Buffer()
+    bind = to_gltf_axes(np.asarray(vertices, np.float32))
+    attributes = {"POSITION": buf.accessor(buf.view(bind, _ARRAY_BUFFER), "VEC3", len(bind), bounds=bind),
+                  "JOINTS_0": buf.accessor(buf.view(np.ascontiguousarray(rig.joints, np.uint16), _ARRAY_BUFFER),
+                                           "VEC4", len(bind), _USHORT),
+                  "WEIGHTS_0": buf.accessor(buf.view(np.ascontiguousarray(rig.weights, np.float32), _ARRAY_BUFFER),
+                                            "VEC4", len(bind))}
+    faces = np.ascontiguousarray(faces, np.uint32)
+    indices = buf.accessor(buf.view(faces.ravel(), _ELEMENT_ARRAY_BUFFER), "SCALAR", faces.size, _UINT,
+                           bounds=faces.reshape(-1, 1))
+    inverse_bind = np.linalg.inv(turn @ rig.bind @ turn.T).astype(np.float32)
+    inverse_bind[:, 3] = [0, 0, 0, 1]  # exactly affine, as glTF requires
+    skin = {"joints": list(range(1, len(rig.names) + 1)), "skeleton": 1,
+            "inverseBindMatrices": buf.accessor(buf.view(np.swapaxes(inverse_bind, 1, 2)), "MAT4", len(rig.names))}
+    rotations = _quaternions(GLTF_AXES @ _rotation_matrices(motion.rotations) @ GLTF_AXES.T)  # (N, J, 4)
+    root = to_gltf_axes(np.asarray(motion.root, np.float32))
+    nodes = [{"name": name, "mesh": 0, "skin": 0}]
+    for j, label in enumerate(rig.names):  # at rest: the first frame, as write_glb's file shows it
+        nodes.append({"name": label, "translation": (root[0] if j == 0 else local[j, :3, 3]).tolist(),
+                      "rotation": rotations[0, j].tolist()})
+    for j, parent in enumerate(rig.parents):
+        if parent >= 0:
+            nodes[parent + 1].setdefault("children", []).append(j + 1)
+    animation = _Animation(buf, frames, fps)
+    if frames > 1:
+        keys = np.arange(frames + 1)
+        for j in range(len(rig.names)):
+            animation.add(j + 1, "rotation", keys, buf.array(np.concatenate([rotations[:, j], rotations[-1:, j]]), "VEC4"))
+        animation.add(1, "translation", keys, buf.array(np.concatenate([root, root[-1:]]), "VEC3"))
+    mesh = {"name": name, "primitives": [{"attributes": attributes, "indices": indices, "mode": 4, "material": 0}]}
+    gltf = _document(buf, animation, nodes, [mesh], name, fps, extras)
+    gltf["scenes"][0]["nodes"] = [0, 1]
+    gltf["skins"] = [skin]
+    return _write_glb_file(Path(path), gltf, b"".join(buf.blobs))
+
+
+def _rotation_matrices(quaternions: np.ndarray) -> np.ndarray:
+    import roma
+    import torch
+
+    return roma.unitquat_to_rotmat(torch.from_numpy(np.asarray(quaternions, np.float64))).numpy()
+
+
+def _quaternions(rotations: np.ndarray) -> np.ndarray:
+    """Unit quaternions (xyzw, glTF's order) of rotation matrices, normalised in float32."""
+    import roma
+    import torch
+
+    q = roma.rotmat_to_unitquat(torch.from_numpy(np.asarray(rotations, np.float64))).numpy().astype(np.float32)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def _write_glb_file(path: Path, gltf: dict, binary: bytes) -> Path:
@@ -242,12 +313,8 @@ def _write_glb_file(path: Path, gltf: dict, binary: bytes) -> Path:
     return path
 
 
-def read_glb(path: str | os.PathLike) -> dict:
-    """Read back a GLB written by ``write_glb``, in the project's axes (z up).
-
-    -> {"frames" (N, V, 3) world positions, "local" (N, V, 3) before the root translation,
-    "translation" (N, 3), "faces", "duration" (the last key time of any channel), "gltf"}.
-    """
+def read_document(path: str | os.PathLike) -> tuple[dict, Callable[[int], np.ndarray]]:
+    """A GLB's JSON and a function from accessor index to its array (rows of ``type``'s components)."""
     data = Path(path).read_bytes()
     magic, version, length = struct.unpack_from("<III", data, 0)
     if magic != _GLB_MAGIC or version != 2 or length != len(data):
@@ -256,17 +323,29 @@ def read_glb(path: str | os.PathLike) -> dict:
     gltf = json.loads(data[20:20 + json_len])
     bin_start = 20 + json_len + 8
     binary = data[bin_start:bin_start + struct.unpack_from("<I", data, 20 + json_len)[0]]
-    sizes = {"SCALAR": 1, "VEC3": 3}
-    dtypes = {_FLOAT: np.float32, _UINT: np.uint32}
+    sizes = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+    dtypes = {_FLOAT: np.float32, _UINT: np.uint32, _USHORT: np.uint16}
 
     def accessor(i: int) -> np.ndarray:
         a = gltf["accessors"][i]
         view = gltf["bufferViews"][a["bufferView"]]
-        stride = view.get("byteStride", 4 * sizes[a["type"]])  # write_glb's strides are tight
+        dtype = np.dtype(dtypes[a["componentType"]])
+        row = dtype.itemsize * sizes[a["type"]]
+        stride = view.get("byteStride", row)  # our writers' strides are tight, or whole rows
         start = view.get("byteOffset", 0) + a.get("byteOffset", 0)
-        arr = np.frombuffer(binary, dtypes[a["componentType"]], a["count"] * stride // 4, start)
+        arr = np.frombuffer(binary, dtype, a["count"] * stride // dtype.itemsize, start)
         return arr.reshape(a["count"], sizes[a["type"]]) if a["type"] != "SCALAR" else arr
 
+    return gltf, accessor
+
+
+def read_glb(path: str | os.PathLike) -> dict:
+    """Read back a GLB written by ``write_glb``, in the project's axes (z up).
+
+    -> {"frames" (N, V, 3) world positions, "local" (N, V, 3) before the root translation,
+    "translation" (N, 3), "faces", "duration" (the last key time of any channel), "gltf"}.
+    """
+    gltf, accessor = read_document(path)
     local = []
     for mesh in gltf["meshes"]:  # chunk meshes in frame order
         primitive = mesh["primitives"][0]
@@ -286,5 +365,3 @@ def read_glb(path: str | os.PathLike) -> dict:
     faces = accessor(gltf["meshes"][0]["primitives"][0]["indices"]).reshape(-1, 3).astype(np.int64)
     return {"frames": local + translation[:, None], "local": local, "translation": np.asarray(translation),
             "faces": faces, "duration": duration, "gltf": gltf}
-
-

@@ -11,8 +11,9 @@ any vertex count, order and connectivity: a mesh that is not the model's Anny to
 registered onto it (aniformer/registration.py: Anny's body fitted to the mesh, a few seconds; the
 result is carried back to the mesh's own vertices). The model runs on the driver's topology when
 that is one of Anny's, else on the checkpoint's (``--template``); a driver that is not an Anny
-mesh is registered on its first frame, which should be close to a standing rest pose. Inputs are
-human bodies standing z up, in ``--unit`` (default m). A T-frame window slides over the sequence
+mesh is registered on up to three frames spread over the clip. Inputs are human bodies in any
+pose and orientation, z or y up (``--up``), in ``--unit`` (default m); a result the self-check
+does not trust is refused (``--force`` writes it anyway). A T-frame window slides over the sequence
 one frame at a time; overlapping predictions of a frame are averaged (``--combine mean``) or the
 window centred on it is used (``--combine center``, always for a regression-head model); see
 docs/animate.md. The result is placed in world space where the driver is (its root motion, scaled
@@ -21,7 +22,8 @@ centred instead.
 
 Outputs in ``--out``: frames/frame_NNNN.obj (one per driving frame, in the target's unit and axes),
 animation.glb (glTF 2.0: y up, metres, morph targets, lasting N / fps), preview.gif (driver |
-result) and animation.json (what was done). They are written under a temporary name beside
+result) and animation.json (what was done); with ``--rig`` also rigged.glb (the target skinned to
+Anny's skeleton, the clip as joint rotations) and motion.bvh (aniformer/rig.py). They are written under a temporary name beside
 ``--out`` and renamed into place when complete; an existing non-empty ``--out`` is refused unless
 ``--overwrite``. Bad input (unreadable/garbage/empty meshes, NaN, coordinates beyond 1 km, bad
 faces, driving frames with other faces, meshes over ``--max-vertices``, a checkpoint that does not
@@ -82,6 +84,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help=f"morph targets per glTF mesh, the clip is split beyond (default {FRAMES_PER_MESH}; "
                         f"three.js plays at most {MAX_MORPH_TARGETS:,})")
     p.add_argument("--no-glb", action="store_true", help="write no animation.glb (e.g. a clip too large for glTF)")
+    p.add_argument("--rig", action="store_true",
+                   help="also write rigged.glb (the target skinned to Anny's skeleton, the clip as joint rotations) "
+                        "and motion.bvh (the same skeleton and motion)")
     p.add_argument("--preview-frames", type=int, default=60,
                    help="frames drawn in preview.gif, evenly spaced (default 60; 0 = no preview)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: cuda if available)")
@@ -206,9 +211,41 @@ def _report_fit(role: str, fit, template, seconds: float) -> None:
           f"{seconds:.1f} s", file=sys.stderr)
 
 
-def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local, translation, target_faces) -> None:
-    """frames/*.obj, animation.glb, preview.gif and animation.json, staged: `out` appears complete or not at all.
-    Each one's time goes into ``summary["seconds"]``."""
+def rig_inputs(args, state: dict, target, target_faces, registrations: dict):
+    """(the target's vertices on an Anny topology, that topology, where each target vertex lies on it or None)
+    for ``aniformer.rig.build_rig``: the registration's, else the target itself when it is an Anny mesh, else
+    a registration made here (a model of absolute output registers nothing)."""
+    from aniformer.registration import Correspondence
+
+    if "target" in registrations:
+        fit = registrations["target"]
+        return fit.template, fit.topology, fit.mesh_on_template
+    topology = _anny_topology(target, target_faces)
+    if topology is not None:
+        return target, topology, None
+    fit = Correspondence(target, target_faces, args.template or (state["config"].get("data") or {}).get("topology"))
+    return fit.template, fit.topology, fit.mesh_on_template
+
+
+def write_rig(tmp: Path, args, summary: dict, target, target_faces, world, rig_source) -> None:
+    """rigged.glb and motion.bvh of the animated ``world`` frames; the rig's size and fit into ``summary``."""
+    from aniformer.bvh import write_bvh
+    from aniformer.glb import write_rigged_glb
+    from aniformer.rig import build_rig, fit_motion
+
+    rig = build_rig(target, *rig_source)
+    motion = fit_motion(rig, target, world)
+    write_rigged_glb(tmp / "rigged.glb", target, target_faces, rig, motion, fps=summary["fps"], name=summary["name"],
+                     extras={"checkpoint": str(args.checkpoint), "driving": str(args.driving)})
+    write_bvh(tmp / "motion.bvh", rig, motion, summary["fps"], UNITS[args.unit])
+    summary["rig"] = {"joints": len(rig.names), "residual_m": round(motion.residual, 6)}
+
+
+def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local, translation, target, target_faces,
+                  rig_source) -> None:
+    """frames/*.obj, animation.glb, preview.gif, animation.json and with ``--rig`` rigged.glb and motion.bvh (of
+    ``rig_source``: ``rig_inputs``), staged: `out` appears complete or not at all. Each one's time goes into
+    ``summary["seconds"]``."""
     from tqdm import tqdm
 
     from aniformer.animate import write_obj
@@ -231,6 +268,9 @@ def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local,
                 write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
                           frames_per_mesh=args.frames_per_mesh,
                           extras={"checkpoint": str(args.checkpoint), "driving": str(args.driving)})
+        if args.rig:
+            with timed(seconds, "rig"):
+                write_rig(tmp, args, summary, target, target_faces, world, rig_source)
         if args.preview_frames:
             from aniformer.render import render_animation_gif
 
@@ -336,7 +376,8 @@ def main(argv: list[str]) -> None:
         "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
         "seconds": {**seconds, "inference": round(inferred - loaded, 3)},
     }
-    write_outputs(out, args, summary, driving, driving_faces, local, translation, target_faces)
+    rig_source = rig_inputs(args, state, target, target_faces, registrations) if args.rig else None
+    write_outputs(out, args, summary, driving, driving_faces, local, translation, target, target_faces, rig_source)
     seconds = time.perf_counter() - start
     worst = max(trust.checks, key=lambda c: c.value / c.limit)
     if trust.ok:
@@ -351,6 +392,10 @@ def main(argv: list[str]) -> None:
         print(f"animation: {out / 'animation.glb'} ({len(result)} frames at {fps:g} fps, {len(result) / fps:.2f} s)")
     if args.preview_frames:
         print(f"preview: {out / 'preview.gif'}")
+    if args.rig:
+        rig = summary["rig"]
+        print(f"rig: {out / 'rigged.glb'} and {out / 'motion.bvh'} ({rig['joints']} joints, skinning "
+              f"{rig['residual_m'] * 1000:.1f} mm RMS from the frames)")
 
 
 def cli() -> None:

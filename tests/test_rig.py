@@ -1,0 +1,182 @@
+"""jobs/animate.py --rig: rigged.glb (a skinned mesh, the clip as joint rotations) and motion.bvh, checked by
+evaluating both files here, independently of aniformer/rig.py, against the animated frames."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from aniformer.glb import read_document, to_gltf_axes
+from aniformer.mesh import from_z_up, load_mesh
+
+MODEL_TOPOLOGY = "notoes_collapse3pc"
+FRAMES = 8
+
+
+@pytest.fixture(scope="module")
+def rigged(tmp_path_factory, job_main):
+    """{name: output folder} of animate --rig with the shipped model on an 8-frame stream clip: ``anny`` (the
+    clip's own target, an Anny mesh: no registration) and ``glb`` (a decimated body saved y-up as a GLB:
+    registered)."""
+    import trimesh
+
+    from aniformer.cli import run
+    from aniformer.synth.variants import remesh
+
+    root = tmp_path_factory.mktemp("rig")
+    samples = root / "clip"
+    run(job_main("export_meshes"), ["--stream", MODEL_TOPOLOGY, "--split", "crouch", "--frames", str(FRAMES),
+                                    "--out", str(samples)])
+    from aniformer.synth.bodies import BodyModel
+
+    full = BodyModel("notoes")
+    rest = full.pose(np.full((1, 6), 0.5, np.float32), np.zeros((1, len(full.bone_labels), 3), np.float32))[0]
+    vertices, faces = remesh(rest, full.faces)
+    trimesh.Trimesh(from_z_up(vertices, "y"), faces, process=False).export(root / "character.glb")
+    outputs = {}
+    for name, target in (("anny", samples / "target.obj"), ("glb", root / "character.glb")):
+        outputs[name] = root / name
+        run(job_main("animate"), ["--target", str(target), "--driving", str(samples / "driving"), "--out",
+                                  str(outputs[name]), "--no-progress", "--preview-frames", "0", "--rig"])
+    return outputs
+
+
+def evaluate_rig(path: Path) -> dict:
+    """The skinned vertices and joint positions a glTF client computes for every frame, from the file
+    alone: node TRS at each STEP key, the joint hierarchy, inverse bind matrices, JOINTS_0 / WEIGHTS_0."""
+    gltf, accessor = read_document(path)
+    nodes, skin = gltf["nodes"], gltf["skins"][0]
+    primitive = gltf["meshes"][0]["primitives"][0]
+    bind = accessor(primitive["attributes"]["POSITION"]).astype(np.float64)
+    joints = accessor(primitive["attributes"]["JOINTS_0"]).astype(np.int64)
+    weights = accessor(primitive["attributes"]["WEIGHTS_0"]).astype(np.float64)
+    inverse_bind = accessor(skin["inverseBindMatrices"]).reshape(-1, 4, 4).transpose(0, 2, 1).astype(np.float64)
+    frames = gltf["animations"][0]["extras"]["frames"]
+    trs = {i: {"translation": np.tile(n.get("translation", [0, 0, 0]), (frames, 1)),
+               "rotation": np.tile(n.get("rotation", [0, 0, 0, 1]), (frames, 1))} for i, n in enumerate(nodes)}
+    for channel in gltf["animations"][0]["channels"]:
+        sampler = gltf["animations"][0]["samplers"][channel["sampler"]]
+        assert sampler["interpolation"] == "STEP"
+        trs[channel["target"]["node"]][channel["target"]["path"]] = accessor(sampler["output"])[:frames]
+    parent = {c: i for i, n in enumerate(nodes) for c in n.get("children", [])}
+
+    def world(i: int) -> np.ndarray:
+        local = np.tile(np.eye(4), (frames, 1, 1))
+        local[:, :3, :3] = Rotation.from_quat(trs[i]["rotation"]).as_matrix()
+        local[:, :3, 3] = trs[i]["translation"]
+        return local if i not in parent else world(parent[i]) @ local
+
+    joint_world = np.stack([world(j) for j in skin["joints"]], 1)  # (N, J, 4, 4)
+    skinning = joint_world @ inverse_bind
+    per_vertex = skinning[:, joints]  # (N, V, 4, 4, 4)
+    moved = np.einsum("nvkab,vb->nvka", per_vertex[..., :3, :3], bind) + per_vertex[..., :3, 3]
+    return {"gltf": gltf, "skinned": (weights[None, ..., None] * moved).sum(2), "joints": joint_world[..., :3, 3],
+            "names": [nodes[j]["name"] for j in skin["joints"]], "weights": weights, "primitive": primitive}
+
+
+def frames_in_gltf_axes(out: Path) -> np.ndarray:
+    """frames/*.obj (in the target's axes) in glTF's y-up axes."""
+    summary = json.loads((out / "animation.json").read_text())
+    frames = np.stack([load_mesh(p)[0] for p in sorted((out / "frames").glob("*.obj"))]).astype(np.float64)
+    return frames if summary["up"]["target"]["axis"] == "y" else to_gltf_axes(frames)
+
+
+@pytest.mark.parametrize("name", ["anny", "glb"])
+def test_rigged_glb_skins_into_the_animated_frames(rigged, name):
+    """No morph targets, >= 20 joints, 4 normalised weights per vertex; the skinning a client computes from the
+    file alone reproduces frames/*.obj to the residual animation.json reports, well under the model's error."""
+    rig = evaluate_rig(rigged[name] / "rigged.glb")
+    assert "targets" not in rig["primitive"] and len(rig["names"]) >= 20 and "root" in rig["names"]
+    assert rig["weights"].shape[1] == 4 and np.abs(rig["weights"].sum(1) - 1).max() < 1e-6
+    frames = frames_in_gltf_axes(rigged[name])
+    assert rig["skinned"].shape == frames.shape
+    rms = float(np.sqrt(np.square(rig["skinned"] - frames).sum(-1).mean()))
+    summary = json.loads((rigged[name] / "animation.json").read_text())
+    assert summary["rig"]["joints"] == len(rig["names"])
+    assert rms == pytest.approx(summary["rig"]["residual_m"], abs=2e-4) and rms < 0.03
+
+
+def parse_bvh(path: Path) -> dict:
+    """{names, parents, offsets (J, 3), channels per joint, motion (N, columns), frame time} of a BVH file."""
+    text = path.read_text()
+    names, parents, offsets, channels, stack, last = [], [], [], [], [], None
+    lines = iter(text.split("MOTION")[0].splitlines()[1:])
+    for line in lines:
+        words = line.split()
+        if words[0] in ("ROOT", "JOINT"):
+            names.append(words[1])
+            parents.append(stack[-1] if stack else -1)
+            last = len(names) - 1
+        elif words[0] == "End":
+            next(lines), next(lines), next(lines)  # {, OFFSET, }
+        elif words[0] == "{":
+            stack.append(last)
+        elif words[0] == "}":
+            stack.pop()
+        elif words[0] == "OFFSET":
+            offsets.append([float(w) for w in words[1:]])
+        elif words[0] == "CHANNELS":
+            channels.append(words[2:])
+    motion = text.split("MOTION")[1].splitlines()
+    frames = int(re.match(r"Frames:\s*(\d+)", motion[1]).group(1))
+    frame_time = float(re.match(r"Frame Time:\s*([\d.]+)", motion[2]).group(1))
+    rows = np.array([[float(v) for v in row.split()] for row in motion[3:] if row.strip()])
+    assert len(rows) == frames
+    return {"names": names, "parents": parents, "offsets": np.array(offsets), "channels": channels, "motion": rows,
+            "frame_time": frame_time}
+
+
+@pytest.mark.parametrize("name", ["anny", "glb"])
+def test_bvh_moves_the_same_joints_as_the_rigged_glb(rigged, name):
+    """A HIERARCHY of the rig's joints and one MOTION row per frame; its joints, posed by its own offsets and
+    ZXY Euler angles, are where rigged.glb puts them."""
+    bvh = parse_bvh(rigged[name] / "motion.bvh")
+    rig = evaluate_rig(rigged[name] / "rigged.glb")
+    assert sorted(bvh["names"]) == sorted(rig["names"]) and len(bvh["motion"]) == FRAMES
+    assert bvh["frame_time"] == pytest.approx(1 / 30, rel=1e-6)
+    assert bvh["channels"][0][:3] == ["Xposition", "Yposition", "Zposition"]
+    assert all(c[-3:] == ["Zrotation", "Xrotation", "Yrotation"] for c in bvh["channels"])
+    position, rotation, column = {}, {}, 0
+    for j, parent in enumerate(bvh["parents"]):
+        values = bvh["motion"][:, column:column + len(bvh["channels"][j])]
+        column += len(bvh["channels"][j])
+        turn = Rotation.from_euler("ZXY", values[:, -3:], degrees=True).as_matrix()
+        if parent < 0:
+            position[j], rotation[j] = values[:, :3] + bvh["offsets"][j], turn
+        else:
+            position[j] = position[parent] + np.einsum("nab,b->na", rotation[parent], bvh["offsets"][j])
+            rotation[j] = rotation[parent] @ turn
+    for j, joint in enumerate(bvh["names"]):  # the unit is metres here (--unit m)
+        np.testing.assert_allclose(position[j], rig["joints"][:, rig["names"].index(joint)], atol=1e-4)
+
+
+def test_rigged_glb_passes_the_khronos_validator(rigged):
+    from test_animate import VALIDATOR_READY, khronos_reports
+
+    if not VALIDATOR_READY:
+        pytest.skip("no node or gltf-validator: npm ci --prefix tests/js")
+    for report in khronos_reports([rigged[name] / "rigged.glb" for name in rigged]):
+        assert report["numErrors"] == 0 and report["numWarnings"] == 0, report
+
+
+def test_threejs_plays_the_skinned_mesh(rigged, tmp_path):
+    """three.js loads rigged.glb as a SkinnedMesh with every joint as a bone and no morph targets, and the
+    skinned body it draws at the last frame stands where frames/*.obj puts it."""
+    from test_animate import THREE_READY, body_pixels, play_in_threejs
+
+    if not THREE_READY:
+        pytest.skip("no chromium or three: .ci/run installs both")
+    out = rigged["glb"]
+    summary = json.loads((out / "animation.json").read_text())
+    result, shot = play_in_threejs(out / "rigged.glb", FRAMES - 1, summary["fps"], tmp_path / "www")
+    assert result["morphs"] == 0 and result["bones"] == summary["rig"]["joints"]
+    assert result["duration"] == pytest.approx(FRAMES / summary["fps"], rel=1e-4)
+    last = frames_in_gltf_axes(out)[-1]
+    np.testing.assert_allclose(result["now"]["min"], last.min(0), atol=0.05)
+    np.testing.assert_allclose(result["now"]["max"], last.max(0), atol=0.05)
+    assert body_pixels(shot) > 500
