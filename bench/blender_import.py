@@ -220,11 +220,17 @@ def main() -> int:
     if args.png is not None:
         report["render_seconds"] = round(render(args.png, frame, now, args), 2)
         report["png"] = str(args.png)
+    return finish("blender_import", report, failures, args.json)
+
+
+def finish(name: str, report: dict, failures: list[str], json_path: Path | None) -> int:
+    """Print the report as one ``name: {...}`` JSON line (and write it to ``json_path``), then each
+    ``FAIL: …``; the exit status: 1 after a failure."""
     report["failures"] = failures
     line = json.dumps(report)
-    print(f"blender_import: {line}")
-    if args.json is not None:
-        args.json.write_text(line + "\n")
+    print(f"{name}: {line}")
+    if json_path is not None:
+        json_path.write_text(line + "\n")
     for failure in failures:
         print(f"FAIL: {failure}")
     return 1 if failures else 0
