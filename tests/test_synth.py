@@ -115,3 +115,23 @@ def test_render_filmstrip(body, tmp_path):
     assert path == tmp_path / "s.png"
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 1000
     assert [p.name for p in tmp_path.iterdir()] == ["s.png"]
+
+
+def test_library_windows_longer_than_stride_3_allows_take_smaller_strides(body):
+    """A 60-frame library clip holds a 20-frame window at stride 3 at most: 24 frames (the foreign-driver
+    clips of synth.variants) take strides 1-2, and the 3-frame training windows draw exactly as before."""
+    from aniformer.synth.poses import LIBRARY_FRAMES, LIBRARY_INSTANCES, _library, _library_clip
+
+    actions = ACTIONS[:3]
+    rotvecs, translation = _library([np.random.default_rng(k) for k in range(40)], 24, body.bone_labels, actions)
+    assert rotvecs.shape == (40 * 24, len(body.bone_labels), 3) and translation.shape == (40 * 24, 3)
+    for seed in range(20):  # T = 3: the window the draws always gave (a stride in 1-3)
+        got, _ = _library([np.random.default_rng(seed)], 3, body.bone_labels, actions)
+        rng = np.random.default_rng(seed)
+        clip = _library_clip(actions[rng.integers(len(actions))], int(rng.integers(LIBRARY_INSTANCES)),
+                             tuple(body.bone_labels))
+        stride = int(rng.integers(1, 4))
+        start = int(rng.integers(LIBRARY_FRAMES - 2 * stride))
+        np.testing.assert_array_equal(got.numpy(), clip.rotvecs[start:start + 2 * stride + 1:stride])
+    with pytest.raises(ValueError, match=f"at most {LIBRARY_FRAMES} frames"):
+        _library([np.random.default_rng(0)], LIBRARY_FRAMES + 1, body.bone_labels, actions)

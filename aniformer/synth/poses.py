@@ -209,11 +209,15 @@ def _library_clip(action: str, instance: int, bone_labels: tuple[str, ...]):
 
 
 def _library(rngs, T: int, bone_labels, actions: Sequence[str]):
-    """Library windows: (B*T, bones, 3) rotvecs and (B*T, 3) translations (stride 1-3 frames)."""
+    """Library windows: (B*T, bones, 3) rotvecs and (B*T, 3) translations (stride 1-3 frames; a window too long
+    for stride 3 within a clip's ``LIBRARY_FRAMES`` takes the strides that fit)."""
+    longest = 3 if T == 1 else min(3, (LIBRARY_FRAMES - 1) // (T - 1))
+    if longest < 1:
+        raise ValueError(f"library windows hold at most {LIBRARY_FRAMES} frames, not {T}")
     rotvecs, translation = [], []
     for rng in rngs:
         clip = _library_clip(actions[rng.integers(len(actions))], int(rng.integers(LIBRARY_INSTANCES)), tuple(bone_labels))
-        stride = int(rng.integers(1, 4))
+        stride = int(rng.integers(1, longest + 1))
         start = int(rng.integers(LIBRARY_FRAMES - (T - 1) * stride))
         rows = slice(start, start + (T - 1) * stride + 1, stride)
         rotvecs.append(clip.rotvecs[rows])
