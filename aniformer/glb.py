@@ -247,7 +247,7 @@ def write_rigged_glb(path: str | os.PathLike, vertices: np.ndarray, faces: np.nd
     _checked_frames(motion.root[:, None], fps)
     turn = np.eye(4)
     turn[:3, :3] = GLTF_AXES
-    local = turn @ rig.local_bind() @ turn.T
+    local = turn @ rig.local_bind @ turn.T
     buf = _Buffer()
     bind = to_gltf_axes(np.asarray(vertices, np.float32))
     attributes = {"POSITION": buf.accessor(buf.view(bind, _ARRAY_BUFFER), "VEC3", len(bind), bounds=bind),
@@ -258,11 +258,14 @@ def write_rigged_glb(path: str | os.PathLike, vertices: np.ndarray, faces: np.nd
     faces = np.ascontiguousarray(faces, np.uint32)
     indices = buf.accessor(buf.view(faces.ravel(), _ELEMENT_ARRAY_BUFFER), "SCALAR", faces.size, _UINT,
                            bounds=faces.reshape(-1, 1))
-    inverse_bind = np.linalg.inv(turn @ rig.bind @ turn.T).astype(np.float32)
+    inverse_bind = (turn @ rig.inverse_bind @ turn.T).astype(np.float32)
     inverse_bind[:, 3] = [0, 0, 0, 1]  # exactly affine, as glTF requires
     skin = {"joints": list(range(1, len(rig.names) + 1)), "skeleton": 1,
             "inverseBindMatrices": buf.accessor(buf.view(np.swapaxes(inverse_bind, 1, 2)), "MAT4", len(rig.names))}
-    rotations = _quaternions(GLTF_AXES @ _rotation_matrices(motion.rotations) @ GLTF_AXES.T)  # (N, J, 4)
+    from scipy.spatial.transform import Rotation  # here: a quarter second of imports no other job needs
+
+    turns = Rotation.from_quat(motion.rotations.reshape(-1, 4)).as_matrix().reshape(*motion.rotations.shape[:-1], 3, 3)
+    rotations = _quaternions(GLTF_AXES @ turns @ GLTF_AXES.T)  # (N, J, 4)
     root = to_gltf_axes(np.asarray(motion.root, np.float32))
     nodes = [{"name": name, "mesh": 0, "skin": 0}]
     for j, label in enumerate(rig.names):  # at rest: the first frame, as write_glb's file shows it
@@ -284,19 +287,11 @@ def write_rigged_glb(path: str | os.PathLike, vertices: np.ndarray, faces: np.nd
     return _write_glb_file(Path(path), gltf, b"".join(buf.blobs))
 
 
-def _rotation_matrices(quaternions: np.ndarray) -> np.ndarray:
-    import roma
-    import torch
-
-    return roma.unitquat_to_rotmat(torch.from_numpy(np.asarray(quaternions, np.float64))).numpy()
-
-
 def _quaternions(rotations: np.ndarray) -> np.ndarray:
-    """Unit quaternions (xyzw, glTF's order) of rotation matrices, normalised in float32."""
-    import roma
-    import torch
+    """Unit quaternions (xyzw, glTF's order) of rotation matrices ``(..., 3, 3)``, normalised in float32."""
+    from scipy.spatial.transform import Rotation
 
-    q = roma.rotmat_to_unitquat(torch.from_numpy(np.asarray(rotations, np.float64))).numpy().astype(np.float32)
+    q = Rotation.from_matrix(rotations.reshape(-1, 3, 3)).as_quat().reshape(*rotations.shape[:-2], 4).astype(np.float32)
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 

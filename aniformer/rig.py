@@ -20,6 +20,7 @@ Coordinates: metres, z up (the project's axes); writers convert (``aniformer.glb
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,10 +47,24 @@ class Rig:
     joints: np.ndarray
     weights: np.ndarray
 
+    @functools.cached_property
     def local_bind(self) -> np.ndarray:
         """``(J, 4, 4)``: each joint's bind transform relative to its parent's (the root's: world)."""
         parent = np.where(self.parents[:, None, None] >= 0, self.bind[np.maximum(self.parents, 0)], np.eye(4))
         return np.linalg.inv(parent) @ self.bind
+
+    @functools.cached_property
+    def inverse_bind(self) -> np.ndarray:
+        """``(J, 4, 4)``: the inverse bind matrices (world to each joint's bind frame)."""
+        return np.linalg.inv(self.bind)
+
+    @functools.cached_property
+    def depth(self) -> np.ndarray:
+        """``(J,)``: each joint's number of ancestors (parents come first)."""
+        depth = np.zeros(len(self.parents), int)
+        for j in range(1, len(self.parents)):
+            depth[j] = depth[self.parents[j]] + 1
+        return depth
 
 
 @dataclass(frozen=True)
@@ -137,16 +152,13 @@ def forward_kinematics(rig: Rig, rotations: torch.Tensor, root: torch.Tensor) ->
     positions ``root (N, 3)``, the other joints at their bind offsets from their parents; one batched
     product per depth of the tree."""
     N, J = rotations.shape[:2]
-    offsets = torch.from_numpy(rig.local_bind()[:, :3, 3]).to(rotations.dtype).expand(N, J, 3)
+    offsets = torch.from_numpy(rig.local_bind[:, :3, 3]).to(rotations.dtype).expand(N, J, 3)
     offsets = torch.cat([root[:, None], offsets[:, 1:]], 1)  # the root (joint 0) sits where the motion puts it
     local = torch.cat([torch.cat([rotations, offsets[..., None]], -1),
                        torch.tensor([0.0, 0, 0, 1], dtype=rotations.dtype).expand(N, J, 1, 4)], -2)
-    depth = np.zeros(J, int)
-    for j in range(1, J):
-        depth[j] = depth[rig.parents[j]] + 1
     world = [local[:, 0]] + [None] * (J - 1)
-    for level in range(1, depth.max() + 1):
-        joints = np.flatnonzero(depth == level)
+    for level in range(1, rig.depth.max() + 1):
+        joints = np.flatnonzero(rig.depth == level)
         moved = torch.stack([world[p] for p in rig.parents[joints]], 1) @ local[:, joints]
         for k, j in enumerate(joints):
             world[j] = moved[:, k]
@@ -163,7 +175,7 @@ def skin(rig: Rig, target: np.ndarray | torch.Tensor, world: torch.Tensor, verti
     dense = np.zeros((len(points), len(rig.names)), np.float32)
     np.add.at(dense, (np.arange(len(points))[:, None], rig.joints[rows].astype(np.int64)), rig.weights[rows])
     dense = torch.from_numpy(dense).to(world.dtype)
-    skinning = (world @ torch.from_numpy(np.linalg.inv(rig.bind)).to(world.dtype))[..., :3, :]  # (N, J, 3, 4)
+    skinning = (world @ torch.from_numpy(rig.inverse_bind).to(world.dtype))[..., :3, :]  # (N, J, 3, 4)
     out = []
     for lo in range(0, len(world), chunk):
         blended = (dense @ skinning[lo:lo + chunk].flatten(2)).unflatten(-1, (3, 4))  # (n, V, 3, 4)
