@@ -41,6 +41,7 @@ def main() -> None:
     from aniformer.rig import build_rig, fit_motion, skin
     from aniformer.synth.stream import TEST_SPLITS, StreamPairs
     from aniformer.synth.variants import variant_pairs
+    from aniformer.transfer import deformation_transfer
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--pairs", type=int, default=2, help="pairs per test split")
@@ -69,6 +70,9 @@ def main() -> None:
                     posed = animate_sequence(lambda d, t: predict(d, t, faces), pair["driving"], template,
                                              window=model.config.window, outputs=model.config.output_frames())
                     frames = center_bbox(fit.from_template(posed) if registered else posed)
+                    moved = deformation_transfer(torch.from_numpy(pair["driving"][None]), torch.from_numpy(template[None]),
+                                                 faces)[0].numpy()
+                    transfer_alone = center_bbox(fit.from_template(moved) if registered else moved)
                     source = (fit.template, topology, fit.mesh_on_template) if registered else (case["target"], topology, None)
                     rig = build_rig(case["target"], *source)
                     motion = fit_motion(rig, case["target"], frames)
@@ -78,6 +82,7 @@ def main() -> None:
                     rows.append({"split": split, "variant": variant, "vertices": len(case["target"]),
                                  "joints": len(rig.names), "frames_to_truth": score(frames, case["ground_truth"]),
                                  "rig_to_frames": score(skinned, frames), "rig_to_truth": score(skinned, case["ground_truth"]),
+                                 "transfer_alone": score(transfer_alone, case["ground_truth"]),
                                  "copy_driver": score(case["copy_driver"], case["ground_truth"]),
                                  "static_target": score(np.broadcast_to(case["target"], frames.shape), case["ground_truth"]),
                                  "size_ratio": rigged_glb.stat().st_size / animation_glb.stat().st_size})
@@ -85,8 +90,8 @@ def main() -> None:
     for variant in VARIANTS:
         mine = [r for r in rows if r["variant"] == variant]
         summary = {key: f"{np.mean([r[key] for r in mine]):.2f} ± {np.std([r[key] for r in mine]):.2f}"
-                   for key in ("frames_to_truth", "rig_to_frames", "rig_to_truth", "copy_driver", "static_target",
-                               "size_ratio")}
+                   for key in ("frames_to_truth", "rig_to_frames", "rig_to_truth", "transfer_alone", "copy_driver",
+                               "static_target", "size_ratio")}
         ratio = [r["rig_to_frames"] / r["frames_to_truth"] for r in mine]
         print(variant, len(mine), "pairs:", summary, f"rig_to_frames / frames_to_truth {np.mean(ratio):.3f} "
               f"(max {np.max(ratio):.3f})")
