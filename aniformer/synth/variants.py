@@ -163,6 +163,19 @@ def posed_target_poses(stream: StreamPairs, split: str, epoch: int, indices: Seq
     return pose[:, 0]
 
 
+def posed_character(stream: StreamPairs, split: str, epoch: int, index: int,
+                    topology: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``posed`` character of a pair before centring, with its truth for a registration: (vertices,
+    faces, Anny's body at ``topology`` in the same build and pose ``(V_a, 3)``, in the same coordinates)."""
+    draws = stream.draws(split, epoch, [index])
+    identity, pose = draws["identities"][:, 1], posed_target_poses(stream, split, epoch, [index])
+    full = _body_model(FULL_TOPOLOGY)
+    rest, _ = rest_bodies(identity)
+    vertices, faces = remesh(rest[0], full.faces)
+    character = AttachedPoints.attach(vertices, rest[0], full.faces).on(full.pose(identity, pose)[0], full.faces)
+    return character, faces, _body_model(topology).pose(identity, pose)[0]
+
+
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
     """A rotation matrix uniform over SO(3)."""
     return scipy.spatial.transform.Rotation.random(random_state=rng).as_matrix()
