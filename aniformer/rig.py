@@ -14,6 +14,11 @@ vertices, and the animation as joint rotations plus root translation (``jobs/ani
    dominates, then refined by L-BFGS on all frames at once. ``RigMotion.residual`` is the RMS
    distance of the skinned frames to the animated ones.
 
+Joint names are Anny's bone labels, or with ``bone_names="mixamo"`` Mixamo's (``mixamorig:Hips``,
+``mixamorig:LeftArm`` ...) where a Mixamo bone has an Anny counterpart (``MIXAMO``), so retargeting
+tools that know Mixamo's skeleton map it without a bone map; Anny's extra bones (a second spine and
+neck segment, twist bones, metacarpals) keep their labels.
+
 Coordinates: metres, z up (the project's axes); writers convert (``aniformer.glb.write_rigged_glb``,
 ``aniformer.bvh.write_bvh``).
 """
@@ -33,6 +38,12 @@ SKELETON_STEPS = 300
 MOTION_ITERATIONS = 100  # L-BFGS: 13.7 mm RMS on a 30-frame clip, 12.9 at 400 (the frames are not all skinnable)
 MOTION_VERTICES = 1000  # target vertices the motion is fitted on (a fixed random subset of larger meshes)
 DOMINANT = 0.5  # a vertex with at least this weight on a bone starts that bone's Kabsch rotation
+_MIXAMO_SIDED = {"clavicle": "Shoulder", "upperarm01": "Arm", "lowerarm01": "ForeArm", "wrist": "Hand",
+                 "upperleg01": "UpLeg", "lowerleg01": "Leg", "foot": "Foot", "eye": "Eye",
+                 **{f"finger{k}-{n}": f"Hand{finger}{n}" for k, finger in enumerate(
+                     ("Thumb", "Index", "Middle", "Ring", "Pinky"), 1) for n in (1, 2, 3)}}
+MIXAMO = {"root": "Hips", "spine05": "Spine", "spine03": "Spine1", "spine01": "Spine2", "neck01": "Neck", "head": "Head",
+          **{f"{anny}.{side[0]}": f"{side}{mixamo}" for anny, mixamo in _MIXAMO_SIDED.items() for side in ("Left", "Right")}}
 
 
 @dataclass(frozen=True)
@@ -117,10 +128,11 @@ def _fit_skeleton(template_vertices: np.ndarray, topology: str) -> torch.Tensor:
     return poses[0].double()
 
 
-def build_rig(target: np.ndarray, template_vertices: np.ndarray, topology: str, on_template=None) -> Rig:
+def build_rig(target: np.ndarray, template_vertices: np.ndarray, topology: str, on_template=None,
+              bone_names: str = "anny") -> Rig:
     """The rig of ``target (V, 3)``: ``template_vertices (V_a, 3)`` are its Anny-topology vertices (module doc);
     ``on_template`` (``registration.SurfacePoints``) places each target vertex on the template, None when the
-    target is that topology itself."""
+    target is that topology itself; ``bone_names``: "anny" or "mixamo" (module doc)."""
     body = _body(topology)
     model = body._model
     dense = np.zeros((body.num_vertices, len(body.bone_labels)))
@@ -143,7 +155,8 @@ def build_rig(target: np.ndarray, template_vertices: np.ndarray, topology: str, 
     weights = (weights / weights.sum(1, keepdims=True)).astype(np.float32)
     weights[:, 0] = 1 - weights[:, 1:].sum(1)  # exactly 1 in float32 (validators check the sum)
     poses = _fit_skeleton(template_vertices, topology).numpy()
-    return Rig(tuple(body.bone_labels[b] for b in kept), index[parents[kept]], poses[kept],
+    names = {"anny": {}, "mixamo": {k: f"mixamorig:{v}" for k, v in MIXAMO.items()}}[bone_names]
+    return Rig(tuple(names.get(body.bone_labels[b], body.bone_labels[b]) for b in kept), index[parents[kept]], poses[kept],
                np.where(weights > 0, index[joints], 0).astype(np.uint16), weights)
 
 

@@ -87,6 +87,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--rig", action="store_true",
                    help="also write rigged.glb (the target skinned to Anny's skeleton, the clip as joint rotations) "
                         "and motion.bvh (the same skeleton and motion)")
+    p.add_argument("--bone-names", choices=("anny", "mixamo"), default="anny",
+                   help="the rig's joint names: Anny's bone labels, or Mixamo's (mixamorig:Hips ...) where Mixamo has "
+                        "the bone (default anny)")
     p.add_argument("--preview-frames", type=int, default=60,
                    help="frames drawn in preview.gif, evenly spaced (default 60; 0 = no preview)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: cuda if available)")
@@ -121,6 +124,8 @@ def check_flags(args: argparse.Namespace) -> None:
                         f"{MAX_MORPH_TARGETS:,} morph targets per mesh")
     if args.fps is not None and not 0 < args.fps < float("inf"):
         raise UserError(f"--fps must be a positive number, got {args.fps}")
+    if args.bone_names != "anny" and not args.rig:
+        raise UserError("--bone-names names the rig's joints: add --rig")
 
 
 def load_inputs(args):
@@ -233,7 +238,7 @@ def write_rig(tmp: Path, args, summary: dict, target, target_faces, world, rig_s
     from aniformer.glb import write_rigged_glb
     from aniformer.rig import build_rig, fit_motion
 
-    rig = build_rig(target, *rig_source)
+    rig = build_rig(target, *rig_source, bone_names=args.bone_names)
     motion = fit_motion(rig, target, world)
     write_rigged_glb(tmp / "rigged.glb", target, target_faces, rig, motion, fps=summary["fps"], name=summary["name"],
                      extras={"checkpoint": str(args.checkpoint), "driving": str(args.driving)})

@@ -560,6 +560,8 @@ def _bad(kind: str, root: Path, inputs: dict) -> tuple[list, str]:
         args["checkpoint"], word = root / "none.pt", "checkpoint not found"
     elif kind == "bad argument":
         return [*_argv(args, root), "--batch-size", "0"], "--batch-size must be >= 1"
+    elif kind == "bone names without a rig":
+        return [*_argv(args, root), "--bone-names", "mixamo"], "--bone-names names the rig's joints: add --rig"
     elif kind == "unknown option":
         return [*_argv(args, root), "--frobnicate"], "unrecognized arguments"
     elif kind == "out not empty":
@@ -579,7 +581,8 @@ BAD_CASES = ["missing target", "missing driving", "empty driving dir", "garbage 
              "face out of range ply", "mixed vertex counts", "other faces", "huge coordinates",
              "centimetres read as metres", "bad unit", "bad fps sidecar", "too many morph targets", "glb over 2 GiB",
              "over size limit", "too many frames", "garbage checkpoint",
-             "checkpoint config mismatch", "missing checkpoint", "bad argument", "unknown option", "out not empty"]
+             "checkpoint config mismatch", "missing checkpoint", "bad argument", "bone names without a rig", "unknown option",
+             "out not empty"]
 
 
 @pytest.mark.parametrize("kind", BAD_CASES)

@@ -22,7 +22,7 @@ FRAMES = 8
 def rigged(tmp_path_factory, job_main):
     """{name: output folder} of animate --rig with the shipped model on an 8-frame stream clip: ``anny`` (the
     clip's own target, an Anny mesh: no registration) and ``glb`` (a decimated body saved y-up as a GLB:
-    registered)."""
+    registered; Mixamo's bone names)."""
     import trimesh
 
     from aniformer.cli import run
@@ -42,7 +42,8 @@ def rigged(tmp_path_factory, job_main):
     for name, target in (("anny", samples / "target.obj"), ("glb", root / "character.glb")):
         outputs[name] = root / name
         run(job_main("animate"), ["--target", str(target), "--driving", str(samples / "driving"), "--out",
-                                  str(outputs[name]), "--no-progress", "--preview-frames", "0", "--rig"])
+                                  str(outputs[name]), "--no-progress", "--preview-frames", "0", "--rig",
+                                  "--bone-names", {"anny": "anny", "glb": "mixamo"}[name]])
     return outputs
 
 
@@ -91,7 +92,8 @@ def test_rigged_glb_skins_into_the_animated_frames(rigged, name):
     """No morph targets, >= 20 joints, 4 normalised weights per vertex; the skinning a client computes from the
     file alone reproduces frames/*.obj to the residual animation.json reports, well under the model's error."""
     rig = evaluate_rig(rigged[name] / "rigged.glb")
-    assert "targets" not in rig["primitive"] and len(rig["names"]) >= 20 and "root" in rig["names"]
+    assert "targets" not in rig["primitive"] and len(rig["names"]) >= 20
+    assert rig["names"][0] == {"anny": "root", "glb": "mixamorig:Hips"}[name]
     assert rig["weights"].shape[1] == 4 and np.abs(rig["weights"].sum(1) - 1).max() < 1e-6
     frames = frames_in_gltf_axes(rigged[name])
     assert rig["skinned"].shape == frames.shape
@@ -153,6 +155,34 @@ def test_bvh_moves_the_same_joints_as_the_rigged_glb(rigged, name):
             rotation[j] = rotation[parent] @ turn
     for j, joint in enumerate(bvh["names"]):  # the unit is metres here (--unit m)
         np.testing.assert_allclose(position[j], rig["joints"][:, rig["names"].index(joint)], atol=1e-4)
+
+
+def test_mixamo_bone_names_name_the_mixamo_skeleton(rigged):
+    """--bone-names mixamo: Mixamo's chains from the hips to the hands, head and feet, each joint below the
+    one Mixamo puts it under (Anny's extra bones between them), Left on the character's left (+x: glTF
+    characters face +z), and the same joints as Anny's names give."""
+    rig, anny = evaluate_rig(rigged["glb"] / "rigged.glb"), evaluate_rig(rigged["anny"] / "rigged.glb")
+    nodes, names = rig["gltf"]["nodes"], rig["names"]
+    parent = {c: i for i, n in enumerate(nodes) for c in n.get("children", [])}
+
+    def ancestors(name):
+        i, found = [n["name"] for n in nodes].index(name), []
+        while i in parent:
+            i = parent[i]
+            found.append(nodes[i]["name"])
+        return found
+
+    chains = [["Hips", "Spine", "Spine1", "Spine2", "Neck", "Head"]] + [
+        [*(["Hips", "Spine", "Spine1", "Spine2"] if limb == "arm" else ["Hips"]), *(f"{side}{b}" for b in bones)]
+        for side in ("Left", "Right") for limb, bones in (("arm", ("Shoulder", "Arm", "ForeArm", "Hand", "HandIndex1")),
+                                                          ("leg", ("UpLeg", "Leg", "Foot")))]
+    for chain in chains:
+        for above, below in zip(chain, chain[1:]):
+            assert f"mixamorig:{above}" in ancestors(f"mixamorig:{below}"), (above, below)
+    bind = {name: rig["joints"][0, names.index(f"mixamorig:{name}")]
+            for name in ("LeftHand", "RightHand", "LeftFoot", "RightFoot")}
+    assert bind["LeftHand"][0] > bind["RightHand"][0] and bind["LeftFoot"][0] > bind["RightFoot"][0]
+    assert len(names) == len(anny["names"]) and "mixamorig:Hips" == names[0] and "root" == anny["names"][0]
 
 
 def test_rigged_glb_passes_the_khronos_validator(rigged):
