@@ -175,21 +175,24 @@ def main(argv: list[str]) -> None:
     started = time.perf_counter()
     with tqdm(total=len(targets) * len(clips), initial=len(rows), unit="pair", desc="retarget",
               disable=args.no_progress, file=sys.stderr) as bar:
+        def say(line: str) -> None:  # above the bar, and at once (stdout is a pipe under ray job submit)
+            bar.write(line, file=sys.stdout)
+            sys.stdout.flush()
+
         for row in rows.values():
-            bar.write(pair_line(row), file=sys.stdout)
+            say(pair_line(row))
         if todo:
             quiet_ray()
             connect()
             exit_on_sigterm()  # after ray.init, which installs its own handler
             options = {"up": args.up, "unit": args.unit, "max_vertices": args.max_vertices,
                        "max_frames": args.max_frames}
-            events = lambda line: bar.write(line, file=sys.stdout)  # noqa: E731
-            for pair, row in schedule(todo, targets, clips, options, blob, state, registers, args.actors, events):
+            for pair, row in schedule(todo, targets, clips, options, blob, state, registers, args.actors, say):
                 row = {"target": pair.target, "clip": pair.clip, **row}
                 if row["status"] == "error":
                     row["self_check"] = row.pop("error")
                 rows[pair.target, pair.clip] = row
-                bar.write(pair_line(row), file=sys.stdout)
+                say(pair_line(row))
                 bar.update(1)
     seconds = time.perf_counter() - started
     ordered = [rows[target, clip] for target in targets for clip in clips]
