@@ -181,18 +181,6 @@ def timed(seconds: dict, stage: str):
         seconds[stage] = round(seconds.get(stage, 0.0) + time.perf_counter() - began, 3)
 
 
-def model_topology(args, state: dict, driving, driving_faces) -> str:
-    """The Anny topology the model runs on: ``--template``, else the driver's when it is an Anny mesh, else
-    the checkpoint's."""
-    from aniformer.synth.bodies import TOPOLOGIES
-
-    trained = (state["config"].get("data") or {}).get("topology")
-    topology = args.template or anny_topology(driving[0], driving_faces) or trained
-    if topology not in TOPOLOGIES:
-        raise UserError(f"--template must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
-    return topology
-
-
 def model_inputs(args, state: dict, config, driving, driving_faces, target, target_faces, seconds: dict,
                  registered: dict | None = None):
     """(faces, driving, target) on the topology the model runs on, the registrations that carry meshes of
@@ -206,10 +194,13 @@ def model_inputs(args, state: dict, config, driving, driving_faces, target, targ
     if getattr(config, "output", "absolute") == "absolute":  # no vertex correspondence needed
         return target_faces, driving, target, registrations, driver_trust
     from aniformer.registration import Correspondence, register_clip
-    from aniformer.synth.bodies import BodyModel
+    from aniformer.synth.bodies import TOPOLOGIES, BodyModel
 
     registered = registered or {}
-    topology = model_topology(args, state, driving, driving_faces)
+    trained = (state["config"].get("data") or {}).get("topology")
+    topology = args.template or anny_topology(driving[0], driving_faces) or trained
+    if topology not in TOPOLOGIES:
+        raise UserError(f"--template must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
     template = BodyModel(topology)
     faces = template.faces
     if "driver" in registered:

@@ -90,6 +90,7 @@ def load_clip(path: str, up: str, unit: str, max_vertices: int, max_frames: int,
     axis = input_axis(up, files[0], driving, faces)
     driving = to_z_up(driving, axis[0])
     anny = anny_topology(driving[0], faces)
+    # the topology the model runs on for this clip, as jobs/animate.py's model_inputs chooses it
     info = {"frames": len(driving), "anny": anny, "topology": anny or trained_topology}
     return info, Clip(path, driving, faces, driving_fps(files) or 30.0, axis)
 
@@ -173,9 +174,13 @@ def write_pair(argv: list[str], state: dict, target: Mesh, clip: Clip, animated)
         return {"status": "refused", "self_check": animated.reason}
     if (out / "animation.json").is_file():  # a retry after the attempt that wrote it died
         return pair_row(out, "ok")
+    import copy
+
     from jobs.animate import write_animation
 
     inference, seconds, window = animated
+    registrations = copy.deepcopy(inference[4])  # writable arrays for the rig's fit (see `Writable`)
+    inference = (*inference[:4], registrations, *inference[5:])
     began = time.perf_counter()
     name = f"{Path(target.path).stem}_{Path(clip.path).name}"
     write_animation(out, args, state, window, name, clip.fps, clip.driving, clip.faces, target.vertices,
