@@ -158,3 +158,36 @@ def test_a_broken_clip_fails_alone_and_a_rerun_after_ctrl_c_skips_the_complete_p
     reason = rows["anny", "broken"]["self_check"]
     assert "broken" in reason and "\n" not in reason and "Traceback" not in reason
     assert not (out / "anny" / "broken").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.ray
+def test_workers_killed_mid_job_cost_a_retry_not_the_pairs(library, ray_address, tmp_path, ray_cluster):
+    """SIGKILL the worker of the running registration of the foreign clip, and the inference actor's: Ray runs
+    the registration again and restarts the actor, which reloads the model; every pair is ok, and the clip
+    is registered once as far as the job is concerned."""
+    import time
+
+    from ray.util.state import list_actors, list_tasks
+
+    targets, clips, out = tmp_path / "targets", tmp_path / "clips", tmp_path / "out"
+    targets.mkdir()
+    shutil.copy(library / "targets" / "anny.obj", targets)
+    for clip in ("walk", "shuffled_walk"):
+        shutil.copytree(library / "clips" / clip, clips / clip)
+    job = subprocess.Popen(retarget_command(targets, clips, out), env=job_env(ray_address, tmp_path),
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    killed, deadline = set(), time.monotonic() + 60
+    while len(killed) < 2 and time.monotonic() < deadline and job.poll() is None:
+        running = list_tasks(filters=[("func_or_class_name", "=", "register_clip_task"), ("state", "=", "RUNNING")])
+        actors = list_actors(filters=[("class_name", "=", "Animator"), ("state", "=", "ALIVE")])
+        for what, pid in [("registration", t.worker_pid) for t in running] + [("actor", a.pid) for a in actors]:
+            if what not in killed and pid:
+                os.kill(pid, signal.SIGKILL)
+                killed.add(what)
+        time.sleep(0.5)
+    stdout, stderr = job.communicate(timeout=300)
+    assert killed == {"registration", "actor"}, (killed, stdout)
+    assert job.returncode == 0, stderr[-3000:]
+    assert stdout.count("registered clip shuffled_walk") == 1
+    assert {row["status"] for row in summary_rows(out).values()} == {"ok"} and len(summary_rows(out)) == 2
