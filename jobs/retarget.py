@@ -121,7 +121,8 @@ def log_run(args, out: Path, rows: list[dict], seconds: float, done_now: int) ->
     with tracker.ended():
         metrics = {f"pairs_{status}": sum(row["status"] == status for row in rows)
                    for status in ("ok", "refused", "error")}
-        metrics["pairs_per_s"] = done_now / seconds if seconds else 0.0
+        if done_now:  # a rerun that found every pair complete keeps the rate of the run that did them
+            metrics["pairs_per_s"] = done_now / seconds
         for row in rows:
             key = re.sub(r"[^\w./ -]", "_", f"pair/{row['target']}/{row['clip']}")
             metrics |= {f"{key}/{name}": float(row[name]) for name in ("frames", "seconds", "fit_mm")
