@@ -100,7 +100,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def _anny_topology(vertices, faces) -> str | None:
+def anny_topology(vertices, faces) -> str | None:
     """The Anny topology a mesh has (vertex count and faces), if any: the model runs there as it is."""
     import numpy as np
 
@@ -132,7 +132,6 @@ def load_inputs(args):
     """(driving frame files, target vertices and faces, fps, name), all checked before any work (and before
     anything is written): frame count, the target mesh, the size the GLB would have."""
     from aniformer.animate import driving_files, driving_fps
-    from aniformer.glb import glb_size
     from aniformer.mesh import load_mesh
 
     files = driving_files(args.driving)
@@ -141,32 +140,40 @@ def load_inputs(args):
     target, target_faces = load_mesh(args.target, max_vertices=args.max_vertices, unit=args.unit)
     fps = args.fps or driving_fps(files) or 30.0
     name = args.name or f"{Path(args.target).stem}_{files[0].parent.name}"
-    size = glb_size(len(files), len(target), len(target_faces), args.frames_per_mesh)
-    if size > MAX_GLB_BYTES and not args.no_glb:
-        raise UserError(f"animation.glb would be {size / 2**30:.1f} GiB ({len(files):,} frames x {len(target):,} "
-                        "vertices); glTF clients load at most 2 GiB: cut the clip, or --no-glb for the OBJs only")
+    check_glb_size(args, len(files), target, target_faces)
     return files, target, target_faces, fps, name
+
+
+def check_glb_size(args, frames: int, target, target_faces) -> None:
+    """`UserError` when animation.glb would be more than glTF clients load (and ``--no-glb`` is not given)."""
+    from aniformer.glb import glb_size
+
+    size = glb_size(frames, len(target), len(target_faces), args.frames_per_mesh)
+    if size > MAX_GLB_BYTES and not args.no_glb:
+        raise UserError(f"animation.glb would be {size / 2**30:.1f} GiB ({frames:,} frames x {len(target):,} "
+                        "vertices); glTF clients load at most 2 GiB: cut the clip, or --no-glb for the OBJs only")
 
 
 def input_axes(args, files, target_faces, target, driving, driving_faces) -> dict[str, tuple[str, str]]:
     """{role: (up axis, why)} of the target and the driver: ``--up``, else glTF's y, else the axis the body
     stands along (``aniformer.registration.detect_up``)."""
+    return {"target": input_axis(args.up, Path(args.target), target[None], target_faces),
+            "driver": input_axis(args.up, files[0], driving, driving_faces)}
+
+
+def input_axis(up: str, path: Path, frames, faces) -> tuple[str, str]:
+    """(up axis, why) of one mesh file's ``frames``, read with ``--up`` ``up`` (see `input_axes`)."""
     import numpy as np
 
     from aniformer.registration import detect_up
 
-    axes = {}
-    for role, path, frames, faces in (("target", Path(args.target), target[None], target_faces),
-                                      ("driver", files[0], driving, driving_faces)):
-        convention = "y" if path.suffix.lower() in GLTF_SUFFIXES else "z"
-        if args.up != "auto":
-            axes[role] = (args.up, "--up")
-        elif convention == "y":
-            axes[role] = ("y", "glTF is y-up")
-        else:
-            shown = frames[np.unique(np.linspace(0, len(frames) - 1, min(len(frames), 8)).round().astype(int))]
-            axes[role] = detect_up(shown, faces, convention)
-    return axes
+    convention = "y" if path.suffix.lower() in GLTF_SUFFIXES else "z"
+    if up != "auto":
+        return up, "--up"
+    if convention == "y":
+        return "y", "glTF is y-up"
+    shown = frames[np.unique(np.linspace(0, len(frames) - 1, min(len(frames), 8)).round().astype(int))]
+    return detect_up(shown, faces, convention)
 
 
 @contextlib.contextmanager
@@ -179,10 +186,13 @@ def timed(seconds: dict, stage: str):
         seconds[stage] = round(seconds.get(stage, 0.0) + time.perf_counter() - began, 3)
 
 
-def model_inputs(args, state: dict, config, driving, driving_faces, target, target_faces, seconds: dict):
+def model_inputs(args, state: dict, config, driving, driving_faces, target, target_faces, seconds: dict,
+                 registered: dict | None = None):
     """(faces, driving, target) on the topology the model runs on, the registrations that carry meshes of
     other topologies there (`aniformer.registration.Correspondence`, by role; none for an absolute-output
-    model) and the driver's self-check where it was registered (`aniformer.trust.Trust`, else None)."""
+    model) and the driver's self-check where it was registered (`aniformer.trust.Trust`, else None).
+    ``registered`` holds registrations already made for these meshes ({"target": Correspondence, "driver":
+    (Correspondence, Trust)}, jobs/retarget.py's shared ones); the others are made here."""
     import numpy as np
 
     registrations, driver_trust = {}, None
@@ -191,17 +201,22 @@ def model_inputs(args, state: dict, config, driving, driving_faces, target, targ
     from aniformer.registration import Correspondence, register_clip
     from aniformer.synth.bodies import TOPOLOGIES, BodyModel
 
+    registered = registered or {}
     trained = (state["config"].get("data") or {}).get("topology")
-    topology = args.template or _anny_topology(driving[0], driving_faces) or trained
+    topology = args.template or anny_topology(driving[0], driving_faces) or trained
     if topology not in TOPOLOGIES:
         raise UserError(f"--template must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
     template = BodyModel(topology)
     faces = template.faces
-    if not np.array_equal(driving_faces, faces):  # another vertex count, order or connectivity
+    if "driver" in registered:
+        registrations["driver"], driver_trust = registered["driver"]
+    elif not np.array_equal(driving_faces, faces):  # another vertex count, order or connectivity
         with timed(seconds, "register driver"):
             registrations["driver"], driver_trust = register_clip(driving, driving_faces, topology)
         _report_fit("driver", registrations["driver"], template, seconds["register driver"])
-    if not np.array_equal(target_faces, faces):
+    if "target" in registered:
+        registrations["target"] = registered["target"]
+    elif not np.array_equal(target_faces, faces):
         with timed(seconds, "register target"):
             registrations["target"] = Correspondence(target, target_faces, topology)
         _report_fit("target", registrations["target"], template, seconds["register target"])
@@ -225,7 +240,7 @@ def rig_inputs(args, state: dict, target, target_faces, registrations: dict):
     if "target" in registrations:
         fit = registrations["target"]
         return fit.template, fit.topology, fit.mesh_on_template
-    topology = _anny_topology(target, target_faces)
+    topology = anny_topology(target, target_faces)
     if topology is not None:
         return target, topology, None
     fit = Correspondence(target, target_faces, args.template or (state["config"].get("data") or {}).get("topology"))
@@ -288,9 +303,10 @@ def write_outputs(out: Path, args, summary: dict, driving, driving_faces, local,
         (tmp / "animation.json").write_text(json.dumps(summary, indent=2) + "\n")
 
 
-def infer(args, model, state: dict, driving, driving_faces, target, target_faces, device, seconds: dict):
+def infer(args, model, state: dict, driving, driving_faces, target, target_faces, device, seconds: dict,
+          registered: dict | None = None):
     """The target's animated frames (sliding windows of the model) and how they were made (each stage's
-    time into ``seconds``):
+    time into ``seconds``; ``registered``: `model_inputs`):
     (frames, combine, windows, input_center, registrations, the self-check's ``Trust``, the size of the
     target's body over the driver's)."""
     import numpy as np
@@ -304,7 +320,7 @@ def infer(args, model, state: dict, driving, driving_faces, target, target_faces
     input_center = args.input_center or (state["config"].get("data") or {}).get("center", "mesh")
     faces, model_driving, model_target, registrations, driver_trust = model_inputs(args, state, config, driving,
                                                                               driving_faces, target, target_faces,
-                                                                              seconds)
+                                                                              seconds, registered)
     model = functools.partial(model.to(device), faces=torch.from_numpy(np.asarray(faces, np.int64)).to(device))
     outputs = config.output_frames()
     combine = args.combine if outputs == slice(None) else "center"
@@ -325,6 +341,45 @@ def infer(args, model, state: dict, driving, driving_faces, target, target_faces
     return result, combine, total, input_center, registrations, trust, scale
 
 
+def local_checkpoint(checkpoint: str, scratch: Path) -> Path:
+    """The checkpoint file of ``checkpoint`` (resolved by `resolve_pretrained`): the file itself, else a run id's
+    or registered model's, downloaded into ``scratch``."""
+    local = Path(checkpoint).expanduser()
+    if not local.exists():  # a run id or model URI: only then MLflow (~1.5 s of imports)
+        from pipeline.registry import resolve_checkpoint
+
+        local = resolve_checkpoint(checkpoint, scratch)
+    return local
+
+
+def write_animation(out: Path, args, state: dict, window: int, name: str, fps: float, driving, driving_faces, target,
+                    target_faces, axes: dict, inference: tuple, seconds: dict) -> dict:
+    """Place the inferred frames (``inference``: what `infer` returns) in the world, then `write_outputs` into
+    ``out`` with their animation.json record (returned)."""
+    from aniformer.animate import root_motion
+    from aniformer.mesh import center_bbox
+
+    result, combine, total, input_center, registrations, trust, scale = inference
+    local = center_bbox(result)
+    translation = None if args.center else root_motion(driving, local, scale)
+    summary = {
+        "checkpoint": str(args.checkpoint), "target": str(args.target), "driving": str(args.driving),
+        "name": name, "frames": len(result), "fps": fps, "unit": args.unit,
+        "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
+        "window": window, "combine": combine, "windows": total, "input_center": input_center,
+        "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template)}
+                       for role, fit in registrations.items()},
+        "up": {role: {"axis": axis, "why": why} for role, (axis, why) in axes.items()},
+        "trust": trust.to_dict(),
+        "output_centred": args.center,
+        "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
+        "seconds": seconds,
+    }
+    rig_source = rig_inputs(args, state, target, target_faces, registrations) if args.rig else None
+    write_outputs(out, args, summary, driving, driving_faces, local, translation, target, target_faces, rig_source)
+    return summary
+
+
 @releases_locks
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
@@ -338,19 +393,14 @@ def main(argv: list[str]) -> None:
 
     from tqdm import tqdm
 
-    from aniformer.animate import load_driving, root_motion
+    from aniformer.animate import load_driving
     from aniformer.checkpoint import model_from_checkpoint
-    from aniformer.mesh import center_bbox, to_z_up
+    from aniformer.mesh import to_z_up
 
     start = time.perf_counter()
     files, target, target_faces, fps, name = load_inputs(args)  # bad input fails before any work
     with tempfile.TemporaryDirectory(prefix="aniformer-animate-") as scratch:
-        local = Path(checkpoint).expanduser()
-        if not local.exists():  # a run id or model URI: only then MLflow (~1.5 s of imports)
-            from pipeline.registry import resolve_checkpoint
-
-            local = resolve_checkpoint(checkpoint, Path(scratch))
-        model, state = model_from_checkpoint(local)
+        model, state = model_from_checkpoint(local_checkpoint(checkpoint, Path(scratch)))
     with tqdm(total=len(files), unit="frame", desc="load driving", disable=args.no_progress, file=sys.stderr) as bar:
         driving, driving_faces = load_driving(files, args.max_vertices, args.unit, progress=bar.update)
     axes = input_axes(args, files, target_faces, target, driving, driving_faces)
@@ -364,26 +414,12 @@ def main(argv: list[str]) -> None:
                         f"inputs' up axis (read as {axes['target'][0]} for the target, {axes['driver'][0]} for the "
                         "driver: --up) and that both are whole human bodies, or pass --force to write it anyway")
     inferred = time.perf_counter()
-    local = center_bbox(result)
-    translation = None if args.center else root_motion(driving, local, scale)
-
-    window = model.config.window
-    summary = {
-        "checkpoint": str(args.checkpoint), "target": str(args.target), "driving": str(args.driving),
-        "name": name, "frames": len(result), "fps": fps, "unit": args.unit,
-        "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
-        "window": window, "combine": combine, "windows": total, "input_center": input_center,
-        "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template)}
-                       for role, fit in registrations.items()},
-        "up": {role: {"axis": axis, "why": why} for role, (axis, why) in axes.items()},
-        "trust": trust.to_dict(),
-        "output_centred": args.center,
-        "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
-        "seconds": {**seconds, "inference": round(inferred - loaded, 3)},
-    }
-    rig_source = rig_inputs(args, state, target, target_faces, registrations) if args.rig else None
-    write_outputs(out, args, summary, driving, driving_faces, local, translation, target, target_faces, rig_source)
+    seconds["inference"] = round(inferred - loaded, 3)
+    inference = result, combine, total, input_center, registrations, trust, scale
+    summary = write_animation(out, args, state, model.config.window, name, fps, driving, driving_faces, target,
+                              target_faces, axes, inference, seconds)
     seconds = time.perf_counter() - start
+    window = model.config.window
     worst = max(trust.checks, key=lambda c: c.value / c.limit)
     if trust.ok:
         print(f"self-check: trusted (closest to its limit: {worst.name} {worst.value:.3f} of {worst.limit:.3f})")

@@ -1,0 +1,293 @@
+"""The Ray side of jobs/retarget.py: every target mesh x every driving clip as one graph of Ray tasks and actors.
+
+- `load_target` / `load_clip` (tasks): each mesh file and each clip is read once, its up axis found and
+  turned z up; the arrays stay in the object store, the driver gets only their topology (`num_returns=2`).
+- `register_target` / `register_clip_task` (tasks): a target of another topology than the model runs on is
+  registered once per topology, a clip of a foreign topology once; every pair that needs it gets the
+  same `ObjectRef` (jobs/animate.py would register them again for every pair).
+- `Animator` (actor): loads the checkpoint once, runs jobs/animate.py's `infer` for each pair it is sent.
+- `write_pair` (task): jobs/animate.py's `write_animation` into ``OUT/<target stem>/<clip>/``, staged and
+  renamed into place, in parallel with the next pairs' inference.
+
+A worker killed mid-task costs only its tasks, retried (`MAX_RETRIES`); a killed actor is restarted and
+its calls retried. A pair whose task raises (bad input, a failed registration) fails alone: its error
+reaches the driver through the pair's last `ObjectRef`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import ray
+
+MAX_RETRIES = 3  # a task whose worker died is run again this many times (never one that raised)
+
+
+class Writable:
+    """Arrays read from the object store are read-only views (torch warns of them, in-place code fails): a
+    `Mesh` or `Clip` is unpickled with its own writable copies."""
+
+    def __setstate__(self, state: dict) -> None:
+        for name, value in state.items():
+            object.__setattr__(self, name, np.array(value) if isinstance(value, np.ndarray) else value)
+
+
+@dataclass(frozen=True)
+class Mesh(Writable):
+    """A target read once: z-up vertices, faces, and its (up axis, why)."""
+
+    path: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    axis: tuple[str, str]
+
+
+@dataclass(frozen=True)
+class Clip(Writable):
+    """A driving clip read once: z-up frames (T, V, 3), faces, fps, (up axis, why)."""
+
+    path: str
+    driving: np.ndarray
+    faces: np.ndarray
+    fps: float
+    axis: tuple[str, str]
+
+
+@dataclass(frozen=True)
+class Refused:
+    """A pair whose result the self-check does not trust (written only with --force)."""
+
+    reason: str
+
+
+@ray.remote(num_returns=2, max_retries=MAX_RETRIES)
+def load_target(path: str, up: str, unit: str, max_vertices: int):
+    """(its Anny topology or None, the `Mesh`)."""
+    from aniformer.mesh import load_mesh, to_z_up
+    from jobs.animate import anny_topology, input_axis
+
+    vertices, faces = load_mesh(path, max_vertices=max_vertices, unit=unit)
+    axis = input_axis(up, Path(path), vertices[None], faces)
+    vertices = to_z_up(vertices, axis[0])
+    return anny_topology(vertices, faces), Mesh(path, vertices, faces, axis)
+
+
+@ray.remote(num_returns=2, max_retries=MAX_RETRIES)
+def load_clip(path: str, up: str, unit: str, max_vertices: int, max_frames: int, trained_topology: str):
+    """({"frames", "anny": its Anny topology or None, "topology": the one the model runs on for it}, the `Clip`)."""
+    from aniformer.animate import driving_files, driving_fps, load_driving
+    from aniformer.errors import UserError
+    from aniformer.mesh import to_z_up
+    from jobs.animate import anny_topology, input_axis
+
+    files = driving_files(path)
+    if len(files) > max_frames:
+        raise UserError(f"{path}: {len(files):,} frames exceeds --max-frames {max_frames:,}")
+    driving, faces = load_driving(files, max_vertices, unit)
+    axis = input_axis(up, files[0], driving, faces)
+    driving = to_z_up(driving, axis[0])
+    anny = anny_topology(driving[0], faces)
+    # the topology the model runs on for this clip, as jobs/animate.py's model_inputs chooses it
+    info = {"frames": len(driving), "anny": anny, "topology": anny or trained_topology}
+    return info, Clip(path, driving, faces, driving_fps(files) or 30.0, axis)
+
+
+@ray.remote(num_returns=2, max_retries=MAX_RETRIES)
+def register_target(mesh: Mesh, topology: str):
+    """(the target's `Correspondence` on ``topology``, {"rms_m", "seconds"})."""
+    from aniformer.registration import Correspondence
+
+    began = time.perf_counter()
+    fit = Correspondence(mesh.vertices, mesh.faces, topology)
+    return fit, {"rms_m": fit.rms, "seconds": time.perf_counter() - began}
+
+
+@ray.remote(num_returns=2, max_retries=MAX_RETRIES)
+def register_clip_task(clip: Clip, topology: str):
+    """((the clip's `Correspondence`, its `Trust`), {"rms_m", "seconds"}): registered on the whole clip."""
+    from aniformer.registration import register_clip
+
+    began = time.perf_counter()
+    fit, trust = register_clip(clip.driving, clip.faces, topology)
+    return (fit, trust), {"rms_m": fit.rms, "seconds": time.perf_counter() - began}
+
+
+# num_cpus=0: inference is a small share of a pair's work (registration and writing are the rest); an actor
+# holding a CPU would leave it idle while those tasks queue for it (docs/retarget.md)
+@ray.remote(num_cpus=0, max_restarts=2, max_task_retries=2)
+class Animator:
+    """The model, loaded once from the checkpoint's bytes (the driver's file need not exist on this node) at
+    the first pair: a restarted actor (its worker killed) loads it again at its next one."""
+
+    def __init__(self):
+        self.model = self.state = self.device = None
+
+    def _load(self, checkpoint: bytes) -> None:
+        import tempfile
+
+        from aniformer.checkpoint import model_from_checkpoint
+        from aniformer.cli import resolve_device
+
+        with tempfile.NamedTemporaryFile(suffix=".pt") as file:
+            file.write(checkpoint)
+            file.flush()
+            self.model, self.state = model_from_checkpoint(file.name)
+        self.device = resolve_device("auto")
+
+    def animate(self, checkpoint: list[ray.ObjectRef], argv: list[str], target: Mesh, clip: Clip, target_fit,
+                driver_fit):
+        """jobs/animate.py's `infer` for one pair (``argv``: its animate arguments) with the shared
+        registrations: (the inference tuple, seconds, window), or `Refused`. ``checkpoint``: [its bytes' ref],
+        fetched at the first call only."""
+        import copy
+
+        from jobs.animate import check_glb_size, infer, parse_args
+
+        if self.model is None:
+            self._load(ray.get(checkpoint[0]))
+        target_fit, driver_fit = copy.deepcopy((target_fit, driver_fit))  # writable arrays (see `Writable`)
+        args = parse_args(argv)
+        check_glb_size(args, len(clip.driving), target.vertices, target.faces)
+        registered = {role: fit for role, fit in (("target", target_fit), ("driver", driver_fit)) if fit is not None}
+        seconds = {}
+        began = time.perf_counter()
+        inference = infer(args, self.model, self.state, clip.driving, clip.faces, target.vertices, target.faces,
+                          self.device, seconds, registered)
+        seconds["inference"] = round(time.perf_counter() - began, 3)
+        trust = inference[5]
+        if not trust.ok and not args.force:
+            return Refused(trust.reason())
+        return inference, seconds, self.model.config.window
+
+
+@ray.remote(max_retries=MAX_RETRIES)
+def write_pair(argv: list[str], state: dict, target: Mesh, clip: Clip, animated) -> dict:
+    """Write one pair's outputs (jobs/animate.py's `write_animation`); its summary row."""
+    from jobs.animate import parse_args
+
+    args = parse_args(argv)
+    out = Path(args.out)
+    if isinstance(animated, Refused):
+        return {"status": "refused", "self_check": animated.reason}
+    if (out / "animation.json").is_file():  # a retry after the attempt that wrote it died
+        return pair_row(out, "ok")
+    import copy
+
+    from jobs.animate import write_animation
+
+    inference, seconds, window = animated
+    registrations = copy.deepcopy(inference[4])  # writable arrays for the rig's fit (see `Writable`)
+    inference = (*inference[:4], registrations, *inference[5:])
+    began = time.perf_counter()
+    name = f"{Path(target.path).stem}_{Path(clip.path).name}"
+    write_animation(out, args, state, window, name, clip.fps, clip.driving, clip.faces, target.vertices,
+                    target.faces, {"target": target.axis, "driver": clip.axis}, inference, seconds)
+    return pair_row(out, "ok", seconds["inference"] + time.perf_counter() - began)
+
+
+def pair_row(out: Path, status: str, seconds: float | None = None) -> dict:
+    """A pair's summary row from its animation.json: frames, fit error (the worst registration's RMS, mm),
+    the self-check (trusted, with its check nearest its limit, or why not), seconds of its own work."""
+    import json
+
+    summary = json.loads((out / "animation.json").read_text())
+    fits = [fit["rms_m"] * 1000 for fit in summary["registered"].values()]
+    checks = summary["trust"]["checks"]
+    worst = max(checks, key=lambda c: c["value"] / c["limit"])
+    verdict = "trusted" if summary["trust"]["ok"] else "not trusted (--force)"
+    return {"status": status, "frames": summary["frames"], "seconds": "" if seconds is None else round(seconds, 2),
+            "fit_mm": f"{max(fits):.1f}" if fits else "",
+            "self_check": f"{verdict}, nearest limit: {worst['name']} {worst['value']:.3f} of {worst['limit']:.3f}"}
+
+
+def error_line(error: BaseException) -> str:
+    """The one-line reason of a pair's failure: the task's own exception, not Ray's traceback around it."""
+    cause = error.cause if isinstance(error, ray.exceptions.RayTaskError) and error.cause is not None else error
+    lines = [line.strip() for line in str(cause).splitlines() if line.strip()]
+    from aniformer.errors import UserError
+
+    text = lines[0] if lines else ""
+    return text if isinstance(cause, UserError) else f"{type(cause).__name__}: {text}".rstrip(": ")
+
+
+@dataclass(frozen=True)
+class Pair:
+    target: str  # the target's file stem
+    clip: str  # the clip's folder name
+    argv: list[str]  # jobs/animate.py's arguments for this pair alone
+
+
+def schedule(pairs: list[Pair], targets: dict[str, str], clips: dict[str, str], options: dict, checkpoint: bytes,
+             state: dict, registers: bool, actors: int, events):
+    """Submit the whole graph for ``pairs`` (``targets``/``clips``: name -> path; ``options``: up, unit,
+    max_vertices, max_frames) and yield ``(pair, row)`` as each pair finishes, row["status"] ok, refused or
+    error (with "error", one line). Each registration is reported to ``events(line)`` once it is made."""
+    trained = (state["config"].get("data") or {}).get("topology")
+    common = (options["up"], options["unit"], options["max_vertices"])
+    target_refs = {name: load_target.remote(path, *common) for name, path in targets.items()
+                   if any(p.target == name for p in pairs)}
+    clip_refs = {name: load_clip.remote(path, *common, options["max_frames"], trained) for name, path in clips.items()
+                 if any(p.clip == name for p in pairs)}
+    target_topology, clip_info, failed = {}, {}, {}
+    for name, (info, _) in target_refs.items():
+        try:
+            target_topology[name] = ray.get(info)
+        except Exception as error:  # a bad mesh fails its own pairs only
+            failed[("target", name)] = error_line(error)
+    for name, (info, _) in clip_refs.items():
+        try:
+            clip_info[name] = ray.get(info)
+        except Exception as error:
+            failed[("clip", name)] = error_line(error)
+
+    # the actors first, so that they start while the meshes load
+    checkpoint_ref, state_ref = ray.put(checkpoint), ray.put(state)
+    animators = [Animator.remote() for _ in range(actors)]
+    target_fits, clip_fits, reports = {}, {}, {}
+    ready, waiting = [], []
+    for pair in pairs:
+        reason = failed.get(("target", pair.target)) or failed.get(("clip", pair.clip))
+        if reason:
+            yield pair, {"status": "error", "error": reason}
+            continue
+        topology = clip_info[pair.clip]["topology"]
+        target_fit = driver_fit = None
+        if registers and target_topology[pair.target] != topology:
+            key = (pair.target, topology)
+            if key not in target_fits:
+                target_fits[key], report = register_target.remote(target_refs[pair.target][1], topology)
+                reports[report] = f"target {pair.target} onto Anny {topology}"
+            target_fit = target_fits[key]
+        if registers and clip_info[pair.clip]["anny"] is None:
+            if pair.clip not in clip_fits:
+                clip_fits[pair.clip], report = register_clip_task.remote(clip_refs[pair.clip][1], topology)
+                reports[report] = f"clip {pair.clip} onto Anny {topology}"
+            driver_fit = clip_fits[pair.clip]
+        # pairs that wait for no registration go first: an actor runs its calls in the order they were sent
+        (ready if target_fit is None and driver_fit is None else waiting).append((pair, target_fit, driver_fit))
+    finals = {}
+    for k, (pair, target_fit, driver_fit) in enumerate(ready + waiting):
+        target, clip = target_refs[pair.target][1], clip_refs[pair.clip][1]
+        # the checkpoint's ref in a list: fetched by the actor at its first pair, not sent with every call
+        animated = animators[k % actors].animate.remote([checkpoint_ref], pair.argv, target, clip, target_fit,
+                                                        driver_fit)
+        finals[write_pair.remote(pair.argv, state_ref, target, clip, animated)] = pair
+    while finals or reports:
+        done, _ = ray.wait([*finals, *reports], num_returns=1)
+        ref = done[0]
+        if ref in reports:
+            what = reports.pop(ref)
+            try:
+                fit = ray.get(ref)
+                events(f"registered {what}: {fit['rms_m'] * 1000:.1f} mm RMS surface distance, {fit['seconds']:.1f} s")
+            except Exception as error:  # its pairs report it too
+                events(f"registration of {what} failed: {error_line(error)}")
+            continue
+        pair = finals.pop(ref)
+        try:
+            yield pair, ray.get(ref)
+        except Exception as error:  # one pair's failure is its row, the others go on
+            yield pair, {"status": "error", "error": error_line(error)}
