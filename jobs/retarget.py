@@ -45,6 +45,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--checkpoint", default="pretrained", metavar="CKPT",
                    help="as jobs/animate.py's: a file, an MLflow run id, a registered model, or 'pretrained' (default)")
     p.add_argument("--rig", action="store_true", help="also write rigged.glb and motion.bvh for every pair")
+    p.add_argument("--bone-names", choices=("anny", "mixamo"), default="anny",
+                   help="the rig's joint names, as jobs/animate.py's (default anny)")
     p.add_argument("--force", action="store_true", help="write results the self-check does not trust")
     p.add_argument("--unit", choices=tuple(UNITS), default="m", help="unit of every input file (default m)")
     p.add_argument("--up", choices=("auto", *UP_AXES), default="auto", help="the inputs' up axis (default auto)")
@@ -86,7 +88,7 @@ def pair_argv(args: argparse.Namespace, target: str, clip: str, out: Path) -> li
     argv = ["--checkpoint", args.checkpoint, "--target", target, "--driving", clip, "--out", str(out), "--no-progress",
             "--unit", args.unit, "--up", args.up, "--max-vertices", str(args.max_vertices),
             "--max-frames", str(args.max_frames)]
-    return argv + ["--rig"] * args.rig + ["--force"] * args.force
+    return argv + ["--rig", "--bone-names", args.bone_names] * args.rig + ["--force"] * args.force
 
 
 def write_summary(path: Path, rows: list[dict]) -> None:
@@ -139,6 +141,8 @@ def main(argv: list[str]) -> None:
                         ("--max-frames", args.max_frames)):
         if value < 1:
             raise UserError(f"{flag} must be >= 1, got {value}")
+    if args.bone_names != "anny" and not args.rig:
+        raise UserError("--bone-names names the rig's joints: add --rig")
     targets, clips = library(args)
     out = Path(args.out).expanduser().resolve()
     from aniformer.checkpoint import model_from_checkpoint, resolve_pretrained  # torch: after the arguments
