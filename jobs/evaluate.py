@@ -279,6 +279,8 @@ def main(argv: list[str]) -> None:
     markdown, result = results_report(args, state, table, spread, sweep, levels, descriptions, notes, data_label,
                                       pairs=pairs, seed=seed, splits=splits, shuffle=shuffle, noise_split=noise_split,
                                       seconds=seconds, refused=refused)
+    result["per_pair"] = {name: {split: [round(float(x), 4) for x in v] for split, v in row.items()}
+                          for name, row in scores.items()}  # the means' pairs, in pair order (as "refused")
     run_id = write_results(out, args, markdown, result, table, sweep, config, name)
     print(markdown.split("\n\n- ")[0].strip())
     if refused is not None:
