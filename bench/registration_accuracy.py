@@ -6,7 +6,8 @@ Validation split ``seen`` only (the test splits stay held out). Per pair, the ta
 ``aniformer.synth.variants`` makes the ``posed`` character (Anny's full body decimated, in a random
 pose of the split's families), optionally turned by a uniformly random rotation (``--turned``). The
 true template is the same body and pose at the model's topology, so the error of the fit is the mean
-distance of the fitted template's vertices to their true places, in cm; also the fit's time.
+distance of the fitted template's vertices to their true places, in cm (and the worst vertex's); also
+the fit's time and the self-check's registration checks (``aniformer.trust.registration_checks``).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 from aniformer.registration import Correspondence
 from aniformer.synth.stream import StreamPairs, _generator
 from aniformer.synth.variants import posed_character, random_rotation
+from aniformer.trust import registration_checks
 
 SPLIT = "seen"
 TOPOLOGY = "notoes_collapse3pc"  # the shipped model's
@@ -50,7 +52,10 @@ def main() -> None:
         fit = Correspondence(target, faces, TOPOLOGY)
         seconds = time.perf_counter() - start
         error = 100 * float(np.linalg.norm(fit.fitted.vertices - truth, axis=1).mean())
-        rows.append({"index": index, "error_cm": round(error, 2), "rms_m": round(fit.rms, 4), "seconds": round(seconds, 1)})
+        part = np.linalg.norm(fit.fitted.vertices - truth, axis=1)
+        checks = {c.name: round(c.value, 4) for c in registration_checks(fit)}
+        rows.append({"index": index, "error_cm": round(error, 2), "worst_vertex_cm": round(100 * float(part.max()), 1),
+                     "rms_m": round(fit.rms, 4), "seconds": round(seconds, 1), "checks": checks})
         print(json.dumps(rows[-1]), flush=True)
     errors = np.array([r["error_cm"] for r in rows])
     summary = {"mean_cm": round(float(errors.mean()), 2), "median_cm": round(float(np.median(errors)), 2),
