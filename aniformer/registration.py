@@ -301,9 +301,10 @@ def _kabsch(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 @contextlib.contextmanager
-def _one_thread():
-    """Run the fit's many small tensor ops on one thread: with two threads on a busy 2-core machine each
-    step was measured 60x slower (threads waiting on each other), and idle it is no faster."""
+def one_thread():
+    """Run a fit's many small tensor ops on one thread: with two threads on a busy 2-core machine each
+    step was measured 60x slower (threads waiting on each other), and idle it is no faster (the
+    registration's fit here, the rig's in ``aniformer.rig``)."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -356,7 +357,7 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
     side = torch.cat([torch.arange(len(SIDES)).repeat(len(seeds)), torch.zeros(len(orientations), dtype=torch.long)])
     weights = torch.cat([torch.ones(len(seeds) * len(SIDES)), torch.zeros(len(orientations))])
     start = [torch.zeros(len(rotvecs), 6), rotvecs, torch.zeros(len(rotvecs), 1, 3)]  # logit 0: Anny's average
-    with torch.enable_grad(), _one_thread():
+    with torch.enable_grad(), one_thread():
         # posed bodies: the skeleton bent onto the partners first (cheap: no nearest-neighbour search), so the
         # Chamfer round starts in the right basin (posed validation bodies: 7.5 -> 2.1 cm mean error)
         start, _, _ = _fit_bodies(coarse, None, start, PREFIT_STEPS, partners[side], weights, lr=PREFIT_LR)

@@ -99,7 +99,7 @@ def _body(topology: str):
 def _fit_skeleton(template_vertices: np.ndarray, topology: str) -> torch.Tensor:
     """Anny's posed bone frames ``(B, 4, 4)`` at the build and pose that best reproduce ``template_vertices
     (V_a, 3)`` (Anny's vertex order), vertex to vertex; the root turned by Kabsch first."""
-    from aniformer.registration import _kabsch, _template
+    from aniformer.registration import _kabsch, _template, one_thread
 
     template = _template(topology)
     target = torch.from_numpy(np.asarray(template_vertices, np.float32))[None]
@@ -112,7 +112,7 @@ def _fit_skeleton(template_vertices: np.ndarray, topology: str) -> torch.Tensor:
     shift = (target.mean(1) - (roma.rotvec_to_rotmat(rotvecs[:, root]) @ average.mean(1)[..., None])[..., 0])[:, None]
     params = [p.requires_grad_(True) for p in (phenotype, rotvecs, shift)]
     optimiser = torch.optim.Adam(params, lr=0.02)
-    with torch.enable_grad():
+    with torch.enable_grad(), one_thread():
         for _ in range(SKELETON_STEPS):
             loss = (template.vertices(torch.sigmoid(params[0]), params[1]) + params[2] - target).square().sum(-1).mean()
             optimiser.zero_grad()
@@ -241,7 +241,9 @@ def fit_motion(rig: Rig, target: np.ndarray, frames: np.ndarray, seed: int = 0) 
         loss.backward()
         return loss
 
-    with torch.enable_grad():
+    from aniformer.registration import one_thread
+
+    with torch.enable_grad(), one_thread():  # a 30-frame clip's fit on a busy 2-core machine: 84 s on two threads, 4 s on one
         optimiser.step(closure)
     with torch.no_grad():
         rotations = local @ roma.rotvec_to_rotmat(turn)
