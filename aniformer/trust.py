@@ -12,6 +12,8 @@ wrong correspondence cannot all pass (measured in docs/results.md#the-self-check
   by the wrong part);
 - ``flipped``: the share of the fitted body's vertices whose normal points against the mesh's
   surface there (a template turned inside out, or a limb through the torso);
+- ``part flipped``: the same share per body part, the worst part's (a hand turned over is too small
+  a share of the body for ``flipped``);
 - ``stretch`` (of a result): the share of the mesh's edge length, in the worst frame, stretched or
   squashed beyond a factor ``STRETCH_FACTOR`` against the same mesh at rest (vertices carried across
   body parts); for a registered driver the same on the template read from every frame;
@@ -39,11 +41,13 @@ PART_OF_BONE = (  # bone-name prefix -> body part; sides come from the bone's .L
 )
 UNCOVERED_DISTANCE = 0.06  # of the body's height (~10 cm): beyond it, a mesh point has no template part
 STRETCH_FACTOR = 3.0  # a tear; the deepest natural joint bends reach 1 % of the edge length beyond it (369 v)
-LIMITS = {"part gap": 0.025, "uncovered": 0.02, "flipped": 0.08, "stretch": 0.02, "near limits": 2.2}
+LIMITS = {"part gap": 0.025, "uncovered": 0.02, "flipped": 0.08, "part flipped": 0.4, "stretch": 0.02,
+          "near limits": 2.2}
 HINTS = {
     "part gap": "a body part of the fit is off the mesh",
     "uncovered": "part of the mesh has no body part of the fit on it",
     "flipped": "the fit's surface turns against the mesh's",
+    "part flipped": "a body part of the fit turns against the mesh (a hand or foot turned over)",
     "stretch": "the result tears the mesh (vertices carried across body parts)",
     "near limits": "part gap, flipped and stretch are all close to their limits (summed as shares of them)",
 }
@@ -87,8 +91,8 @@ def part_labels(topology: str) -> tuple[np.ndarray, tuple[str, ...]]:
 
 
 def registration_checks(correspondence, role: str = "") -> list[Check]:
-    """``part gap``, ``uncovered`` and ``flipped`` of an ``aniformer.registration.Correspondence`` (of the
-    mesh of ``role``: target, driver)."""
+    """``part gap``, ``uncovered``, ``flipped`` and ``part flipped`` of an
+    ``aniformer.registration.Correspondence`` (of the mesh of ``role``: target, driver)."""
     height = correspondence.fitted.height
     parts, names = part_labels(correspondence.topology)
     gaps = np.array([np.sqrt(np.square(correspondence.template_gap[parts == k]).mean()) if (parts == k).any() else 0.0
@@ -104,10 +108,13 @@ def registration_checks(correspondence, role: str = "") -> list[Check]:
     template_normals, _ = normals(correspondence.fitted.vertices, correspondence.template_faces)
     _, mesh_normals = normals(vertices, faces)
     mesh_normals = mesh_normals[correspondence.template_on_mesh.face]
-    flipped = float(((template_normals * mesh_normals).sum(1) < 0).mean())
+    against = (template_normals * mesh_normals).sum(1) < 0
+    part_flipped = np.array([against[parts == k].mean() if (parts == k).any() else 0.0 for k in range(len(names))])
+    turned = int(part_flipped.argmax())
     return [Check("part gap", float(gaps[worst]), LIMITS["part gap"], f"{role} {names[worst]}".strip()),
             Check("uncovered", uncovered, LIMITS["uncovered"], role),
-            Check("flipped", flipped, LIMITS["flipped"], role)]
+            Check("flipped", float(against.mean()), LIMITS["flipped"], role),
+            Check("part flipped", float(part_flipped[turned]), LIMITS["part flipped"], f"{role} {names[turned]}".strip())]
 
 
 def stretch_check(frames: np.ndarray, rest: np.ndarray, faces: np.ndarray, what: str = "result") -> Check:
