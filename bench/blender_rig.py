@@ -10,7 +10,8 @@ bench/blender_import.py (whose helpers it uses). In a fresh scene at the clip's 
 1. imports ``OUT/rigged.glb``: one armature whose bone count is animation.json's ``rig.joints``, one
    mesh skinned by it (an Armature modifier) and no shape keys; the armature's action spans frames
    0 … N; the mesh evaluated in world space at every frame is within ``rig.residual_m`` + 1 mm RMS
-   of ``OUT/frames`` (z-up OBJs in metres);
+   of ``OUT/frames`` (OBJs in metres, in the target's axes: a y-up target's turned z-up as Blender's
+   glTF importer turns glTF's);
 2. imports ``OUT/motion.bvh`` into a second fresh scene: an armature of as many bones, its action
    spanning the clip's frames;
 3. with ``--png``: the glTF import at ``--frame`` (default N // 2), the mesh half transparent and every
@@ -130,6 +131,8 @@ def main() -> int:
     for k in range(frames):
         mine, _ = world_vertices(k)
         reference = obj_vertices(args.out / "frames" / f"frame_{k:0{max(4, len(str(frames - 1)))}d}.obj")
+        if summary["up"]["target"]["axis"] == "y":  # a y-up target's own axes, turned z-up as the importer turns glTF's
+            reference = reference[:, [0, 2, 1]] * [1, -1, 1]
         if mine.shape != reference.shape:
             failures.append(f"frame {k}: {len(mine)} vertices in Blender, {len(reference)} in the OBJ")
             break

@@ -212,10 +212,12 @@ def test_threejs_plays_the_skinned_mesh(rigged, tmp_path):
     assert body_pixels(shot) > 500
 
 
-def test_blender_imports_the_rig_and_the_bvh(rigged, tmp_path):
-    """bench/blender_rig.py in Debian's Blender: rigged.glb is one armature of every joint skinning the mesh (no
-    shape keys), its action spans the clip, the skinned mesh is the job's frames to the reported residual at
-    every frame; motion.bvh is an armature of as many bones with an action of the clip's frames."""
+@pytest.mark.parametrize("name", ["anny", "glb"])
+def test_blender_imports_the_rig_and_the_bvh(rigged, name, tmp_path):
+    """bench/blender_rig.py in Debian's Blender, for the Anny target and the y-up GLB character (Mixamo names):
+    rigged.glb is one armature of every joint skinning the mesh (no shape keys), its action spans the clip, the
+    skinned mesh is the job's frames to the reported residual at every frame; motion.bvh is an armature of as
+    many bones with an action of the clip's frames."""
     import shutil
     import subprocess
 
@@ -225,8 +227,8 @@ def test_blender_imports_the_rig_and_the_bvh(rigged, tmp_path):
     report = tmp_path / "report.json"
     proc = subprocess.run([blender, "-b", "--factory-startup", "--python-exit-code", "1", "--python",
                            str(Path(__file__).resolve().parents[1] / "bench" / "blender_rig.py"), "--",
-                           str(rigged["anny"]), "--json", str(report)], capture_output=True, text=True, timeout=300)
+                           str(rigged[name]), "--json", str(report)], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     result = json.loads(report.read_text())
-    joints = json.loads((rigged["anny"] / "animation.json").read_text())["rig"]["joints"]
+    joints = json.loads((rigged[name] / "animation.json").read_text())["rig"]["joints"]
     assert result["gltf"]["bones"] == [joints] and result["bvh"]["bones"] == [joints] and not result["failures"]
