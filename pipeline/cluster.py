@@ -12,6 +12,14 @@ The dashboard and job API run arbitrary code for whoever reaches them, and the e
 without authentication. tests/test_limits.py lists a local job's listening sockets. It runs with
 Ray's token authentication (Ray's default for a new local cluster; tests/test_system.py checks it).
 
+The local instance also answers Ray's own "which cluster?" lookups. Ray Train's placement-group
+cleaner (a detached actor) asks the state API whether the train controller still lives, with no
+address: Ray then takes the cluster recorded last on this machine (`ray start`, a test suite's
+`ray.cluster_utils.Cluster`), not its own, finds no such controller there, and removes the
+training's placement group, killing its workers. `connect` chooses the local dashboard's port
+itself and names it in RAY_API_SERVER_ADDRESS, which Ray's lookup reads first, for this process
+and every worker Ray starts.
+
 A cluster that cannot be reached is one line (`UserError`), not Ray's traceback. `ray.init` has no
 timeout of its own (ray-project/ray#46863): for an address where nothing answers it retries the GCS
 connection 20 times, about 41 s each (14 min in all), and as long for an address where something
@@ -33,6 +41,8 @@ from aniformer.errors import UserError
 LOCALHOST = "127.0.0.1"
 # Ray's switch for Windows and macOS, where it runs single-node on the loopback address by default.
 SINGLE_NODE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+# Where Ray's state API and job clients look before RAY_ADDRESS and the last recorded cluster.
+API_SERVER_ENV = "RAY_API_SERVER_ADDRESS"
 PROBE_SECONDS = 5.0
 
 
@@ -42,6 +52,13 @@ def _local_node_only() -> None:
 
     os.environ[SINGLE_NODE_ENV] = "0"  # the agents and workers Ray starts read it at their import
     ray_constants.ENABLE_RAY_CLUSTER = False  # this process imported ray before the variable was set
+
+
+def _free_local_port() -> int:
+    """A TCP port free on 127.0.0.1 now, from the kernel's ephemeral range."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind((LOCALHOST, 0))
+        return probe.getsockname()[1]
 
 
 def _root_line(error: BaseException) -> str:
@@ -110,9 +127,11 @@ def connect() -> str | None:
     _local_node_only()
     # Ray 2.60 turns token auth on for a new local cluster and says so with an opt-out hint: on is our default.
     logging.getLogger("ray._private.authentication.authentication_token_setup").setLevel(logging.ERROR)
+    dashboard_port = _free_local_port()
+    os.environ[API_SERVER_ENV] = f"http://{LOCALHOST}:{dashboard_port}"  # before ray.init: its workers inherit it
     try:
         context = ray.init(address="local", _node_ip_address=LOCALHOST, include_dashboard=True,
-                           dashboard_host=LOCALHOST, log_to_driver=True)
+                           dashboard_host=LOCALHOST, dashboard_port=dashboard_port, log_to_driver=True)
     except (ConnectionError, RuntimeError, OSError) as error:  # OSError: its temp dir (RAY_TMPDIR) unusable
         raise UserError(f"a local Ray instance could not start: {_root_line(error)}") from None
     node_ip = ray.util.get_node_ip_address()
