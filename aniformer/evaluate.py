@@ -21,6 +21,7 @@ the same noisy inputs at a given level.
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import math
 import zlib
@@ -34,6 +35,10 @@ from aniformer.mesh import center_bbox
 from aniformer.metrics import PMD_SCALE, pmd_per_frame
 
 Predict = Callable[[torch.Tensor, torch.Tensor, torch.Tensor | None], torch.Tensor]
+
+COPY_DRIVER, STATIC_TARGET, TRANSFER = "copy-driver", "static target", "deformation transfer"
+BASELINES = (COPY_DRIVER, STATIC_TARGET, TRANSFER)
+DEFAULT_CLIP_FRAMES = 16  # the acceleration error's clips: half a second at 30 fps, 14 model windows
 
 
 @dataclass
@@ -59,14 +64,14 @@ def model_contender(name: str, model: torch.nn.Module, device: str | torch.devic
     return Contender(name, predict, model.config.window, model.config.output_frames())
 
 
-def copy_driver_contender(window: int, name: str = "copy-driver") -> Contender:
+def copy_driver_contender(window: int, name: str = COPY_DRIVER) -> Contender:
     from aniformer.baselines import copy_driver
 
     return Contender(name, lambda driving, target, faces: copy_driver(driving, target), window, slice(None),
                      needs_correspondence=True)
 
 
-def transfer_contender(window: int, name: str = "deformation transfer") -> Contender:
+def transfer_contender(window: int, name: str = TRANSFER) -> Contender:
     """The geometric prior alone (aniformer/transfer.py), no learning: needs vertex correspondence."""
     from aniformer.transfer import deformation_transfer
 
@@ -78,7 +83,7 @@ def transfer_contender(window: int, name: str = "deformation transfer") -> Conte
     return Contender(name, predict, window, slice(None), needs_correspondence=True)
 
 
-def static_target_contender(window: int, name: str = "static target") -> Contender:
+def static_target_contender(window: int, name: str = STATIC_TARGET) -> Contender:
     """The target, unmoved: what a model scores if it ignores the driver."""
 
     def predict(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None) -> torch.Tensor:
@@ -163,6 +168,49 @@ def evaluate_table(contenders: Sequence[Contender], samplers: Samplers, splits: 
     return {name: {split: float(v.mean()) for split, v in row.items()} for name, row in scores.items()}
 
 
+def acceleration_error(pred: torch.Tensor, ground_truth: torch.Tensor) -> torch.Tensor:
+    """``(..., N, V, 3)`` clips -> ``(...)``: mean over the N - 2 inner frames and the vertices of the distance
+    between predicted and true vertex accelerations (second differences), in the meshes' unit per frame²."""
+    def second_difference(x: torch.Tensor) -> torch.Tensor:
+        return x[..., 2:, :, :] - 2 * x[..., 1:-1, :, :] + x[..., :-2, :, :]
+
+    return (second_difference(pred) - second_difference(ground_truth)).norm(dim=-1).mean((-2, -1))
+
+
+def clip_accelerations(contenders: Sequence[Contender], clips, split: str, *, pairs: int,
+                       batch_size: int = 8) -> dict[str, np.ndarray]:
+    """{contender name: acceleration error (mm/frame²) of each of ``pairs`` clips of ``split``}: the
+    ``clips`` sampler's windows are whole clips, which every contender animates as jobs/animate.py does,
+    its own window sliding over the clip (``animate.animate_sequence``), so jitter between windows counts."""
+    from aniformer.animate import animate_sequence
+
+    scores: dict[str, list[float]] = {c.name: [] for c in contenders}
+    for lo in range(0, pairs, batch_size):
+        batch = clips.batch(split, 0, np.arange(lo, min(pairs, lo + batch_size)), n=pairs)
+        for b in range(len(batch["driving"])):
+            faces = torch.from_numpy(batch["target_faces"][b])
+            truth = torch.from_numpy(batch["ground_truth"][b])
+            for c in contenders:
+                run = functools.partial(c.predict, faces=faces)
+                pred = animate_sequence(run, batch["driving"][b], batch["target"][b], window=c.window, outputs=c.frames)
+                scores[c.name].append(float(acceleration_error(torch.from_numpy(pred), truth)) * 1000)
+    return {name: np.asarray(values) for name, values in scores.items()}
+
+
+def ratio_rows(table: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
+    """Each model row (not a baseline) of ``table`` divided by the deformation transfer alone and by the
+    better trivial baseline (min of copy-driver and static target), where those rows are present."""
+    models = [name for name in table if name not in BASELINES]
+    references = {}
+    if TRANSFER in table:
+        references["transfer"] = table[TRANSFER]
+    if COPY_DRIVER in table and STATIC_TARGET in table:
+        references["min(copy-driver, static target)"] = {
+            s: min(table[COPY_DRIVER][s], table[STATIC_TARGET][s]) for s in table[COPY_DRIVER]}
+    return {f"{name} ÷ {label}": {s: table[name][s] / reference[s] if reference[s] > 0 else math.nan for s in reference}
+            for label, reference in references.items() for name in models}
+
+
 def noise_sweep(contenders: Sequence[Contender], samplers: Samplers, split: str, levels: Sequence[float], *,
                 pairs: int, batch_size: int = 16, seed: int = 0,
                 progress: Callable[[str, float], None] | None = None) -> dict[str, dict[float, float]]:
@@ -206,14 +254,18 @@ def _fmt(value: float) -> str:
 
 
 def table_markdown(table: dict[str, dict[str, float]], splits: Sequence[str], descriptions: dict[str, str] | None = None,
-                   title: str | None = "PMD (×10⁻⁴, lower is better)", notes: Sequence[str] = ()) -> str:
-    """Rows: contenders; columns: splits; the best of each column in bold."""
+                   title: str | None = "PMD (×10⁻⁴, lower is better)", notes: Sequence[str] = (),
+                   ratios: bool = False) -> str:
+    """Rows: contenders; columns: splits; the best of each column in bold. ``ratios``: then each model's
+    ratio to the transfer alone and to the better trivial baseline (``ratio_rows``)."""
     best = {s: min((row[s] for row in table.values() if math.isfinite(row[s])), default=math.nan) for s in splits}
     lines = [f"**{title}**", ""] if title else []
     lines += ["| method | " + " | ".join(splits) + " |", "|---|" + "---:|" * len(splits)]
     for name, row in table.items():
         cells = [f"**{_fmt(row[s])}**" if row[s] == best[s] and len(table) > 1 else _fmt(row[s]) for s in splits]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    for name, row in (ratio_rows(table) if ratios else {}).items():
+        lines.append(f"| {name} | " + " | ".join(_fmt(row[s]) for s in splits) + " |")
     if descriptions:
         lines += [""] + [f"- `{s}`: {descriptions[s]}" for s in splits if s in descriptions]
     if notes:
@@ -291,8 +343,8 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
     faces = torch.from_numpy(_body_model(topology).faces)
     frames = model.config.output_frames()
     predict = model_contender("model", model, device).predict
-    rows = {"model": lambda d, t: predict(d, t, faces), "deformation transfer": lambda d, t: deformation_transfer(d, t, faces)}
-    scores = {name: {v: [] for v in variants} for name in (*rows, "copy-driver", "static target")}
+    rows = {"model": lambda d, t: predict(d, t, faces), TRANSFER: lambda d, t: deformation_transfer(d, t, faces)}
+    scores = {name: {v: [] for v in variants} for name in (*rows, COPY_DRIVER, STATIC_TARGET)}
 
     def score(row: str, variant: str, pred: np.ndarray, truth: np.ndarray) -> None:
         error = pmd_per_frame(torch.from_numpy(np.ascontiguousarray(pred)), torch.from_numpy(truth)).mean()
@@ -302,7 +354,7 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
         """Each row's template posed by a whole driving ``clip (N, V, 3)`` on the template."""
         return {"model": animate_sequence(rows["model"], clip, target, window=model.config.window, outputs=frames,
                                           device=device),
-                "deformation transfer": rows["deformation transfer"](torch.from_numpy(clip[None]),
+                TRANSFER: rows[TRANSFER](torch.from_numpy(clip[None]),
                                                                      torch.from_numpy(target[None]))[0].numpy()}
 
     for lo in range(0, pairs, batch_size):
@@ -325,8 +377,8 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
                 results = {name: center_bbox(p if same else correspondence.from_template(p)) for name, p in posed.items()}
                 for name, result in results.items():
                     score(name, variant, result, truth)
-                score("copy-driver", variant, case["copy_driver"][scored], truth)
-                score("static target", variant, np.broadcast_to(case["target"], truth.shape), truth)
+                score(COPY_DRIVER, variant, case["copy_driver"][scored], truth)
+                score(STATIC_TARGET, variant, np.broadcast_to(case["target"], truth.shape), truth)
                 if refused is not None:
                     trust = animation_trust(results["model"], case["target"], case["faces"], correspondence, driver_trust)
                     refused.setdefault(variant, []).append(not trust.ok)

@@ -53,10 +53,13 @@ def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: s
 
 
 def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: int, pairs: int):
-    """{row: {split: PMD x1e4}} on the same pairs for every row, and the splits used."""
+    """({row: {split: PMD x1e4}} on the same pairs for every row, the splits used, and on a stream
+    {row: {split: acceleration error, mm/frame²}} on clips of ``DEFAULT_CLIP_FRAMES`` frames, else None)."""
     from aniformer.checkpoint import model_from_checkpoint
     from aniformer.evaluate import (
+        DEFAULT_CLIP_FRAMES,
         Samplers,
+        clip_accelerations,
         copy_driver_contender,
         evaluate_table,
         model_contender,
@@ -78,16 +81,21 @@ def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: in
             samplers[shuffle] = Samplers(make_sampler, shuffle)
         return samplers[shuffle]
 
-    table = {}
+    table, contenders = {}, []
     for row, spec in specs.items():
         model, _ = model_from_checkpoint(checkpoints[row])
-        table |= evaluate_table([model_contender(row, model)], sampler_for(spec.data.shuffle), splits,
-                                pairs=pairs, seed=seed)
+        contenders.append(model_contender(row, model))
+        table |= evaluate_table(contenders[-1:], sampler_for(spec.data.shuffle), splits, pairs=pairs, seed=seed)
     if ablation.copy_driver:
         baselines = [copy_driver_contender(first.window), static_target_contender(first.window),
                      transfer_contender(first.window)]
+        contenders += baselines
         table |= evaluate_table(baselines, sampler_for("none"), splits, pairs=pairs, seed=seed)
-    return table, splits
+    if first.source != "stream":
+        return table, splits, None
+    clips = make_sampler(DEFAULT_CLIP_FRAMES, "none")
+    per_split = {split: clip_accelerations(contenders, clips, split, pairs=pairs) for split in splits}
+    return table, splits, {c.name: {split: float(per_split[split][c.name].mean()) for split in splits} for c in contenders}
 
 
 def _pair_samplers(data, bank_dir: Path, seed: int, pairs: int):
@@ -133,7 +141,7 @@ def main(argv: list[str]) -> None:
                         "(they are scored on the same pairs)")
     out, name, bank = RunJobParser.locations(args)
 
-    from aniformer.evaluate import table_csv, table_markdown
+    from aniformer.evaluate import DEFAULT_CLIP_FRAMES, table_csv, table_markdown
     from aniformer.files import atomic_path
     from pipeline.ablation import log_pmd_table, slug
     from pipeline.cluster import connect
@@ -156,9 +164,14 @@ def main(argv: list[str]) -> None:
         checkpoints = _train_variants(specs, bank, out, name, args.experiment, parent.run_id, faces)
         seed, pairs = first.data.seed, ablation.pairs or first.data.eval_pairs
         print(f"evaluating {len(specs)} variants on {pairs} pairs per split ...", flush=True)
-        table, splits = _evaluate(specs, checkpoints, bank, ablation, seed, pairs)
-        markdown = table_markdown(table, splits, notes=_notes(specs, ablation, pairs, seed))
+        table, splits, acceleration = _evaluate(specs, checkpoints, bank, ablation, seed, pairs)
+        markdown = table_markdown(table, splits, notes=_notes(specs, ablation, pairs, seed), ratios=True)
+        if acceleration is not None:
+            markdown += "\n" + table_markdown(acceleration, splits, ratios=True, title=(
+                f"Acceleration error (mm/frame², lower is better): clips of {DEFAULT_CLIP_FRAMES} frames, each "
+                "window sliding over the clip as in animate.py"))
         result = {"name": name, "bank": str(bank), "pairs": pairs, "seed": seed, "splits": splits, "table": table,
+                  "acceleration": acceleration,
                   "variants": {row: {"overrides": list(ablation.variants[row]), "checkpoint": str(checkpoints[row]),
                                      "config": specs[row].to_dict()} for row in specs}}
         files = {"ablation.md": markdown, "ablation.csv": table_csv(table, splits),
@@ -169,7 +182,9 @@ def main(argv: list[str]) -> None:
             parent.log_artifact(out / filename, "ablation")
         log_pmd_table(parent, table, splits, notes={row: " ".join(ablation.variants[row]) or "(base config)" for row in specs})
         parent.log_metrics({f"pmd_{split}.{slug(row)}": value for row, values in table.items()
-                            for split, value in values.items()}, step=0)
+                            for split, value in values.items()}
+                           | {f"accel_{split}.{slug(row)}": value for row, values in (acceleration or {}).items()
+                              for split, value in values.items()}, step=0)
     print(markdown.split("\n\nEvery variant")[0].strip())
     print(f"ablation {name}: {len(specs)} variants in {time.perf_counter() - started:.0f} s")
     print(f"table: {out / 'ablation.md'}, {out / 'ablation.csv'}")

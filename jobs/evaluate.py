@@ -57,6 +57,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--splits", help="comma-separated splits (default: every split of the bank)")
     p.add_argument("--noise", metavar="LEVELS", help="noise sweep: comma-separated amplitudes in metres, e.g. 0,0.005,0.01")
     p.add_argument("--noise-split", metavar="SPLIT", help="split of the noise sweep (default: unseen)")
+    p.add_argument("--clip-frames", type=int, metavar="N",
+                   help="stream checkpoints: also animate clips of N frames, window sliding as in animate.py, and "
+                        "report the acceleration error (jitter) beside PMD (default 16; 0 for none)")
     p.add_argument("--seed", type=int, help="pair seed (default: the checkpoint's data.seed, as in training)")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--no-copy-driver", action="store_true",
@@ -97,6 +100,8 @@ def check_flags(args: argparse.Namespace) -> tuple[list[float] | None, list[tupl
         raise UserError(f"--pairs must be >= 1, got {args.pairs}")
     if args.batch_size < 1:
         raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
+    if args.clip_frames is not None and args.clip_frames != 0 and args.clip_frames < 3:
+        raise UserError(f"--clip-frames must be 0 (none) or >= 3 (an acceleration needs three frames), got {args.clip_frames}")
     from aniformer.evaluate import parse_levels
 
     try:
@@ -113,22 +118,33 @@ def check_flags(args: argparse.Namespace) -> tuple[list[float] | None, list[tupl
 
 
 def choose_data(args: argparse.Namespace, ckpt_path: Path, config: dict, levels):
-    """(pairs, seed, the data source, the splits to score, the noise split) for a checkpoint's run config:
-    the target variants (--targets), its stream, or a bank."""
+    """(pairs, seed, the data source, the splits to score, the noise split, the clip length of the
+    acceleration error or 0) for a checkpoint's run config: the target variants (--targets), its stream,
+    or a bank."""
     from pipeline.data import DataConfig
 
     data_cfg = {**DataConfig().to_dict(), **(config.get("data") or {})}  # the defaults, for fields it lacks
     pairs = args.pairs or int(data_cfg["eval_pairs"])
     seed = args.seed if args.seed is not None else int(data_cfg["seed"])
     center = data_cfg["center"]
+    clip_frames = 0
     if args.targets is not None:
         source = _target_source(args, data_cfg, center, seed, pairs)
     elif data_cfg.get("source") == "stream" and not args.bank:
         source = _stream_source(args, data_cfg, center, seed, pairs)
+        from aniformer.evaluate import DEFAULT_CLIP_FRAMES
+        from aniformer.synth.poses import LIBRARY_FRAMES
+
+        clip_frames = DEFAULT_CLIP_FRAMES if args.clip_frames is None else args.clip_frames
+
+        if clip_frames > LIBRARY_FRAMES:
+            raise UserError(f"--clip-frames must be at most {LIBRARY_FRAMES} (the stream's longest clip), got {clip_frames}")
     else:
         if args.topology:
             raise UserError("--topology applies to checkpoints trained on a stream (data.source: stream)")
         source = _bank_source(args, ckpt_path, data_cfg, center, seed, pairs)
+    if args.clip_frames and not clip_frames:
+        raise UserError("--clip-frames applies to the splits of a stream checkpoint (no --bank, no --targets)")
     all_splits, descriptions, shuffle, make_sampler, notes, data_label = source
     splits = [s.strip() for s in args.splits.split(",")] if args.splits else all_splits
     unknown = [s for s in splits if s not in all_splits]
@@ -138,7 +154,7 @@ def choose_data(args: argparse.Namespace, ckpt_path: Path, config: dict, levels)
     noise_split = args.noise_split or ("unseen" if "unseen" in splits else splits[-1])
     if levels is not None and noise_split not in all_splits:
         raise UserError(f"--noise-split {noise_split!r} is not a split of the data ({', '.join(all_splits)})")
-    return pairs, seed, source, splits, noise_split
+    return pairs, seed, source, splits, noise_split, clip_frames
 
 
 def refusals_line(refused: dict[str, list[bool]]) -> str:
@@ -149,16 +165,27 @@ def refusals_line(refused: dict[str, list[bool]]) -> str:
 
 def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, descriptions: dict, notes: list,
                    data_label: str, *, pairs: int, seed: int, splits: list, shuffle: str, noise_split: str,
-                   seconds: float, refused: dict[str, list[bool]] | None = None) -> tuple[str, dict]:
-    """The results as Markdown (mean and SD tables, the noise sweep, --targets' refusals) and as the
-    results.json record."""
+                   seconds: float, refused: dict[str, list[bool]] | None = None,
+                   accelerations: dict | None = None, clip_frames: int = 0) -> tuple[str, dict]:
+    """The results as Markdown (mean and SD tables with each model's ratios, the acceleration errors, the
+    noise sweep, --targets' refusals) and as the results.json record."""
     from aniformer.evaluate import table_markdown
 
     notes.append(f"{pairs} pairs per split (seed {seed}, window as each model's, vertex shuffling "
                  f"'{shuffle}'; copy-driver on the same pairs unshuffled). Checkpoint: {args.checkpoint} "
                  f"(epoch {state.get('epoch')}); data: {data_label}.")
-    markdown = table_markdown(table, splits, descriptions, notes=notes)
+    markdown = table_markdown(table, splits, descriptions, notes=notes, ratios=True)
     markdown += "\n" + table_markdown(spread, splits, title="Standard deviation of PMD over the pairs of each split")
+    acceleration = acceleration_sd = None
+    if accelerations is not None:
+        acceleration = {name: {s: float(v.mean()) for s, v in row.items()} for name, row in accelerations.items()}
+        acceleration_sd = {name: {s: float(v.std(ddof=1)) if len(v) > 1 else float("nan") for s, v in row.items()}
+                           for name, row in accelerations.items()}
+        markdown += "\n" + table_markdown(
+            acceleration, splits, ratios=True,
+            title=f"Acceleration error (mm/frame², lower is better): clips of {clip_frames} frames, each method's "
+                  "window sliding over the clip as in animate.py; predicted against true vertex accelerations")
+        markdown += "\n" + table_markdown(acceleration_sd, splits, title="Standard deviation of the acceleration error")
     if refused is not None:
         markdown += "\n" + refusals_line(refused) + "\n"
     if sweep is not None:
@@ -173,6 +200,8 @@ def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, 
                                                            for k, row in sweep.items()}}}
     if refused is not None:
         result["refused"] = {variant: [bool(r) for r in values] for variant, values in refused.items()}
+    if acceleration is not None:
+        result |= {"clip_frames": clip_frames, "acceleration": acceleration, "acceleration_sd": acceleration_sd}
 
     return markdown, result
 
@@ -192,7 +221,8 @@ def write_results(out: Path, args: argparse.Namespace, markdown: str, result: di
             plot_sweep(sweep, tmp / "noise.png", result["noise"]["split"])
         run_id = None
         if not args.no_mlflow:
-            run_id = _log_to_mlflow(f"evaluate-{name}", args, tmp, table, sweep, pairs, seed, splits, config)
+            run_id = _log_to_mlflow(f"evaluate-{name}", args, tmp, table, sweep, pairs, seed, splits, config,
+                                    result.get("acceleration"))
 
     return run_id
 
@@ -223,12 +253,14 @@ def contenders_of(args, rows: list, window: int, device):
     return contenders
 
 
-def score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_split, pairs, seed, device):
+def score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_split, pairs, seed, device,
+          clip_frames: int = 0):
     """({row: {split: per-pair PMDs}}, the noise sweep or None, --targets: {variant: per pair, whether the
-    self-check refused the model's result} or None), with a progress bar on stderr."""
+    self-check refused the model's result} or None, ``clip_frames``: {row: {split: per-clip acceleration
+    errors}} or None), with a progress bar on stderr."""
     from tqdm import tqdm
 
-    from aniformer.evaluate import Samplers, evaluate_pairs, noise_sweep, target_pmds
+    from aniformer.evaluate import Samplers, clip_accelerations, evaluate_pairs, noise_sweep, target_pmds
 
     model = rows[0][1]
     if args.targets is not None:
@@ -237,16 +269,24 @@ def score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_s
             scores = target_pmds(model, make_sampler(model.config.window, "none"), args.target_split, splits,
                                  pairs=pairs, device=device, batch_size=args.batch_size, progress=lambda: bar.update(1),
                                  refused=refused)
-        return {rows[0][0]: scores.pop("model"), **scores}, None, refused
+        return {rows[0][0]: scores.pop("model"), **scores}, None, refused, None
     samplers = Samplers(make_sampler, shuffle)
-    steps = len(contenders) * (len(splits) + (len(levels) if levels else 0))
+    steps = len(contenders) * (len(splits) + (len(levels) if levels else 0)) + (len(splits) if clip_frames else 0)
     with tqdm(total=steps, unit="split", desc="evaluate", disable=args.no_progress, file=sys.stderr) as bar:
         scores = evaluate_pairs(contenders, samplers, splits, pairs=pairs, batch_size=args.batch_size, seed=seed,
                                 progress=lambda *_: bar.update(1))
         sweep = None if levels is None else noise_sweep(contenders, samplers, noise_split, levels, pairs=pairs,
                                                         batch_size=args.batch_size, seed=seed,
                                                         progress=lambda *_: bar.update(1))
-    return scores, sweep, None
+        accelerations = None
+        if clip_frames:
+            clips = make_sampler(clip_frames, "none")
+            accelerations = {c.name: {} for c in contenders}
+            for split in splits:
+                for name, values in clip_accelerations(contenders, clips, split, pairs=pairs).items():
+                    accelerations[name][split] = values
+                bar.update(1)
+    return scores, sweep, None, accelerations
 
 
 @releases_locks
@@ -264,13 +304,13 @@ def main(argv: list[str]) -> None:
     start = time.perf_counter()
     ckpt_path, model, state, others = load_models(checkpoint, compare)
     config = state["config"]
-    pairs, seed, (all_splits, descriptions, shuffle, make_sampler, notes, data_label), splits, noise_split = \
+    pairs, seed, (all_splits, descriptions, shuffle, make_sampler, notes, data_label), splits, noise_split, clip_frames = \
         choose_data(args, ckpt_path, config, levels)
     name = args.name or _default_name(args.checkpoint)
     rows = [(args.name or _model_label(state, model), model), *others]
     contenders = contenders_of(args, rows, model.config.window, device)
-    scores, sweep, refused = score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_split, pairs, seed,
-                                   device)
+    scores, sweep, refused, accelerations = score(args, rows, contenders, make_sampler, shuffle, splits, levels,
+                                                  noise_split, pairs, seed, device, clip_frames)
     table = {name: {split: float(v.mean()) for split, v in row.items()} for name, row in scores.items()}
     spread = {name: {split: float(v.std(ddof=1)) if len(v) > 1 else float("nan") for split, v in row.items()}
               for name, row in scores.items()}
@@ -278,7 +318,8 @@ def main(argv: list[str]) -> None:
 
     markdown, result = results_report(args, state, table, spread, sweep, levels, descriptions, notes, data_label,
                                       pairs=pairs, seed=seed, splits=splits, shuffle=shuffle, noise_split=noise_split,
-                                      seconds=seconds, refused=refused)
+                                      seconds=seconds, refused=refused, accelerations=accelerations,
+                                      clip_frames=clip_frames)
     result["per_pair"] = {name: {split: [round(float(x), 4) for x in v] for split, v in row.items()}
                           for name, row in scores.items()}  # the means' pairs, in pair order (as "refused")
     run_id = write_results(out, args, markdown, result, table, sweep, config, name)
@@ -368,18 +409,20 @@ def _bank_source(args, ckpt_path: Path, data_cfg: dict, center: str, seed: int, 
     return splits, descriptions, data_cfg.get("shuffle", "target"), make_sampler, notes, f"bank {bank_dir.resolve()}"
 
 
-def _log_to_mlflow(job: str, args, files: Path, table, sweep, pairs, seed, splits, config) -> str:
+def _log_to_mlflow(job: str, args, files: Path, table, sweep, pairs, seed, splits, config, acceleration=None) -> str:
     quiet_mlflow()
     from pipeline.tracking import start_job_run
 
     params = {"evaluate": {"checkpoint": args.checkpoint, "bank": str(args.bank or ""), "topology": args.topology or "",
-                           "pairs": pairs, "seed": seed,
-                           "splits": splits, "compare": args.compare, "noise": args.noise or ""}, **config}
+                           "pairs": pairs, "seed": seed, "splits": splits, "clip_frames": args.clip_frames,
+                           "compare": args.compare, "noise": args.noise or ""}, **config}
     try:
         tracker = start_job_run(job, params, experiment=args.experiment, out=Path(args.out).expanduser().resolve())
         with tracker.ended():
             metrics = {f"pmd_{split}.{_metric_name(row)}": value
                        for row, values in table.items() for split, value in values.items()}
+            metrics |= {f"accel_{split}.{_metric_name(row)}": value
+                        for row, values in (acceleration or {}).items() for split, value in values.items()}
             tracker.log_metrics(metrics, step=0)
             from pipeline.ablation import log_pmd_table
 

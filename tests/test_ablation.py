@@ -169,7 +169,9 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address)
         state = load_checkpoint(out / "runs" / variant / "best.pt")
         assert (state["epoch"], state["config"]["model"]["attention"], state["config"]["data"]["shuffle"]) == (
             1, *trained_with), variant
-    assert "| AniFormer (full) |" in (out / "ablation.md").read_text()
+    markdown = (out / "ablation.md").read_text()
+    assert "| AniFormer (full) |" in markdown and "| cross, shuffle both ÷ transfer |" in markdown
+    assert json.loads((out / "ablation.json").read_text())["acceleration"] is None  # a bank: no clips to animate
 
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     runs = client.search_runs([client.get_experiment_by_name("aniformer").experiment_id])

@@ -19,11 +19,15 @@ from aniformer.errors import UserError
 from aniformer.evaluate import (
     Contender,
     Samplers,
+    acceleration_error,
+    clip_accelerations,
     copy_driver_contender,
     evaluate_table,
     noise_sweep,
     parse_levels,
+    ratio_rows,
     split_pmd,
+    static_target_contender,
     table_csv,
     table_markdown,
 )
@@ -94,6 +98,45 @@ def test_parse_levels_and_reports():
     assert "`seen`: seen motions" in md
     rows = list(csv.reader(io.StringIO(table_csv(table, ["seen", "unseen"]))))
     assert rows == [["method", "seen", "unseen"], ["AniFormer", "0.5", "2"], ["copy-driver", "1", "1.5"]]
+
+
+def test_ratio_rows_divide_each_model_by_the_transfer_and_the_better_trivial_baseline():
+    table = {"A": {"seen": 6.0}, "B": {"seen": 1.0}, "copy-driver": {"seen": 30.0}, "static target": {"seen": 20.0},
+             "deformation transfer": {"seen": 12.0}}
+    assert ratio_rows(table) == {"A ÷ transfer": {"seen": 0.5}, "B ÷ transfer": {"seen": 1 / 12},
+                                 "A ÷ min(copy-driver, static target)": {"seen": 0.3},
+                                 "B ÷ min(copy-driver, static target)": {"seen": 0.05}}
+    md = table_markdown(table, ["seen"], ratios=True)
+    assert "| **B** | **1.00** |" not in md and "| B | **1.00** |" in md  # a ratio is never the column's best
+    assert "| A ÷ transfer | 0.50 |" in md and "| B ÷ min(copy-driver, static target) | 0.05 |" in md
+    assert ratio_rows({"A": {"seen": 1.0}}) == {}  # no baseline rows, no ratios
+
+
+def test_acceleration_error_is_the_mean_distance_of_second_differences():
+    truth = torch.randn(2, 6, 5, 3)
+    moved = truth + torch.tensor([0.1, -0.2, 0.3])  # a constant offset moves no vertex's acceleration
+    assert torch.allclose(acceleration_error(moved, truth), torch.zeros(2), atol=1e-6)
+    bumped = truth.clone()
+    bumped[:, 3, :, 0] += 0.01  # one frame off by 1 cm in x: accelerations at frames 2, 3, 4 off by 1, 2, 1 cm
+    assert torch.allclose(acceleration_error(bumped, truth), torch.full((2,), (0.01 + 0.02 + 0.01) / 4), atol=1e-6)
+
+
+def test_clip_accelerations_slide_each_window_over_the_clip():
+    """Per clip, in mm/frame², recomputed here: the static target's error is the clip's own mean vertex
+    acceleration, and the copy-driver's the driver's accelerations against the truth's."""
+    from aniformer.synth.stream import StreamPairs
+
+    clips = StreamPairs("notoes_collapse3pc", window=8, eval_pairs=2)
+    batch = clips.batch("seen", 0, np.arange(2), n=2)
+    scores = clip_accelerations([copy_driver_contender(3), static_target_contender(3)], clips, "seen", pairs=2)
+    truth = np.asarray(batch["ground_truth"], np.float64)
+    own = np.linalg.norm(truth[:, 2:] - 2 * truth[:, 1:-1] + truth[:, :-2], axis=-1).mean((1, 2)) * 1000
+    assert scores["static target"] == pytest.approx(own, rel=1e-4)
+    driving = np.asarray(batch["driving"], np.float64)
+    copied = np.linalg.norm((driving[:, 2:] - 2 * driving[:, 1:-1] + driving[:, :-2])
+                            - (truth[:, 2:] - 2 * truth[:, 1:-1] + truth[:, :-2]), axis=-1).mean((1, 2)) * 1000
+    assert scores["copy-driver"] == pytest.approx(copied, rel=1e-4)
+    assert (scores["copy-driver"] < scores["static target"]).all()
 
 
 # --------------------------------------------------------------------------------------------

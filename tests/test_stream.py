@@ -167,6 +167,7 @@ def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monk
     """jobs/train.py on pairs made on the fly (no bank is written), then jobs/evaluate.py on its
     checkpoint: every stream split, the model beside the three baselines."""
     import csv
+    import json
 
     from aniformer.cli import run
 
@@ -176,9 +177,16 @@ def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monk
     assert (out / "best.pt").is_file() and not (out / "bank").exists()
     assert "trained run: epoch 1" in capsys.readouterr().out
     run(job_main("evaluate"), ["--checkpoint", str(out / "best.pt"), "--out", str(tmp_path / "eval"), "--pairs", "2",
-                               "--splits", "seen,rotated,build_mismatch", "--no-mlflow", "--no-progress"])
+                               "--splits", "seen,rotated,build_mismatch", "--clip-frames", "6", "--no-mlflow",
+                               "--no-progress"])
     rows = {r["method"]: r for r in csv.DictReader((tmp_path / "eval" / "results.csv").open())}
     assert list(rows) == ["AniFormer", "copy-driver", "static target", "deformation transfer"]
+    result = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert result["clip_frames"] == 6 and set(result["acceleration"]) == set(rows)
+    assert all(set(v) == {"seen", "rotated", "build_mismatch"} for v in result["acceleration"].values())
+    markdown = (tmp_path / "eval" / "results.md").read_text()
+    ratio = float(rows["AniFormer"]["seen"]) / float(rows["deformation transfer"]["seen"])
+    assert f"| AniFormer ÷ transfer | {ratio:.2f} |" in markdown and "Acceleration error (mm/frame²" in markdown
     # the model's and the copy-driver's rows are their PMD on the same 2 stream pairs, recomputed here
     from conftest import model_predict, recomputed_pmd
 
@@ -200,6 +208,10 @@ def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monk
         run(job_main("evaluate"), ["--checkpoint", str(out / "best.pt"), "--out", str(tmp_path / "e2"),
                                    "--splits", "unseen_drivers", "--no-mlflow", "--no-progress"])
     assert "unknown split(s) unseen_drivers" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # too short a clip for an acceleration: one line, exit 2
+        run(job_main("evaluate"), ["--checkpoint", str(out / "best.pt"), "--out", str(tmp_path / "e3"),
+                                   "--clip-frames", "2", "--no-mlflow", "--no-progress"])
+    assert "--clip-frames must be 0 (none) or >= 3" in capsys.readouterr().err
     # the README's flow: a stream clip as OBJ files, animated with the checkpoint
     samples, anim = tmp_path / "walk", tmp_path / "anim"
     run(job_main("export_meshes"), ["--stream", "notoes_collapse3pc", "--split", "locomotion", "--frames", "5",
