@@ -42,6 +42,7 @@ from aniformer.model import attention_kernels
 from pipeline.checkpoints import SCORE, best_checkpoint, restore_state, resume_epoch
 from pipeline.console import Console, EpochBar, epoch_line, quiet_ray, show
 from pipeline.data import pair_dataset, pair_source, quiet_ray_data
+from pipeline.ddp import LoopbackTorchConfig
 from pipeline.run_spec import EVAL_SPLITS, RunSpec, resolve_precision
 from pipeline.tracking import Tracker
 
@@ -270,6 +271,7 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
         loop,
         train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": faces, "first_epoch": first_epoch,
                            "console": console.to_dict() if console else None, **(loop_config or {})},
+        torch_config=LoopbackTorchConfig(),  # the DDP store on 127.0.0.1-only when the workers are local
         scaling_config=ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
                                      resources_per_worker={"CPU": cfg.cpus_per_worker},
                                      placement_strategy=cfg.placement_strategy),

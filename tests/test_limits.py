@@ -308,6 +308,52 @@ def test_a_jobs_local_ray_listens_on_localhost_only():
     assert not outside, f"listening beyond this machine: {outside}"
 
 
+TRAINING_LISTENERS = """
+import json, sys, threading, time, ray, psutil  # psutil: Ray's vendored copy, on the path after ray
+found, stop = set(), threading.Event()
+
+def watch():
+    me = psutil.Process()
+    while not stop.is_set():
+        pids = {me.pid} | {p.pid for p in me.children(recursive=True)}
+        for c in psutil.net_connections(kind="inet"):
+            if c.status == psutil.CONN_LISTEN and c.pid in pids:
+                try:
+                    found.add((c.laddr.ip, c.laddr.port, psutil.Process(c.pid).name()))
+                except psutil.Error:
+                    pass
+        time.sleep(0.2)
+
+threading.Thread(target=watch, daemon=True).start()
+from jobs.train import main
+main(sys.argv[1:])
+stop.set()
+print(json.dumps(sorted(found)))
+"""
+
+
+@pytest.mark.slow
+def test_a_local_ddp_training_listens_on_localhost_only(tmp_path):
+    """jobs/train.py on its own local Ray with two DDP workers: every socket any of its processes listened on
+    while it trained. torch's rendezvous store listens on every interface; the job meets its workers at a
+    file store instead (pipeline/ddp.py), and gloo's sockets are on the loopback interface."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    env |= {"RAY_TMPDIR": tempfile.mkdtemp(prefix="ray", dir="/tmp"), "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'm.db'}"}
+    args = ["--config", str(TINY), "--out", str(tmp_path / "out"), "--no-register", "--no-progress", "data.source=stream",
+            "data.shuffle=none", "data.pairs_per_epoch=16", "data.eval_pairs=4", "train.epochs=1", "model.output=transfer",
+            "train.workers=2", "train.cpus_per_worker=0.5"]
+    try:
+        done = subprocess.run([sys.executable, "-c", TRAINING_LISTENERS, *args], cwd=ROOT, env=env, capture_output=True,
+                              text=True, timeout=600)
+    finally:
+        shutil.rmtree(env["RAY_TMPDIR"], ignore_errors=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    listeners = json.loads(done.stdout.strip().splitlines()[-1])
+    assert any(name.startswith("ray::RayTrainWorker") for _, _, name in listeners), listeners
+    outside = [entry for entry in listeners if entry[0] not in ("127.0.0.1", "::ffff:127.0.0.1", "::1")]
+    assert not outside, f"listening beyond this machine: {outside}"
+
+
 # ------------------------------------------------------------------------------ a Ray that cannot be reached
 
 def train_with_ray_address(tmp_path: Path, address: str) -> tuple[subprocess.CompletedProcess, float]:
