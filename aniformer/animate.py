@@ -45,10 +45,9 @@ import trimesh
 
 from aniformer.errors import MeshError, UserError
 from aniformer.files import atomic_path, natural_key
-from aniformer.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, center_bbox, load_mesh
+from aniformer.mesh import CENTER_MODES, DEFAULT_MAX_VERTICES, MESH_SUFFIXES, center_bbox, load_mesh
 
 COMBINE_RULES = ("mean", "center")
-CENTER_MODES = ("mesh", "window", "none")
 # Estimated inference times beyond which `animate_sequence` warns, and refuses unless `force`.
 WARN_SECONDS = 10 * 60
 REFUSE_SECONDS = 2 * 3600

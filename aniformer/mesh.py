@@ -130,6 +130,11 @@ def from_z_up(vertices: np.ndarray, up: str) -> np.ndarray:
     return np.stack([x, z, -y], -1)
 
 
+# How meshes are centred for the model: each on its own bounding box (the paper), each window's frames on
+# their joint box, or not at all.
+CENTER_MODES = ("mesh", "window", "none")
+
+
 def center_bbox(vertices):
     """Centre meshes on their bounding box, as the paper does; works on numpy or torch `(..., V, 3)`."""
     if isinstance(vertices, np.ndarray):

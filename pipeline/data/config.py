@@ -1,4 +1,5 @@
-"""The ``data:`` section of a config (`DataConfig`), the pair splits, and the seeds derived from it.
+"""The ``data:`` section of a config (`DataConfig`), the pair splits, the motion instances it defines
+and the seeds derived from it.
 
 Which fields shape the bank's bytes (`GENERATION_FIELDS`) and which only shape pairs or execution is
 declared here, so a bank can be checked against a config (`bank.check_bank_matches`).
@@ -13,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from aniformer.animate import CENTER_MODES
 from aniformer.config import Section, from_dict
+from aniformer.mesh import CENTER_MODES
 from aniformer.synth.bodies import TOPOLOGIES
 from aniformer.synth.motions import ACTIONS
 
@@ -144,8 +145,6 @@ class DataConfig(Section):
         if self.source == "stream" and self.shuffle != "none":
             raise ValueError("source=stream makes driver and target on one topology: shuffle must be none")
         self.resolved_actions()  # validates actions / heldout_actions
-        from pipeline.data.plan import assign_motions  # plan builds on this module
-
         groups = {m["split"] for m in assign_motions(self)}
         if "seen" not in groups:
             raise ValueError(
@@ -192,6 +191,57 @@ class DataConfig(Section):
         """The fields that shape the bank, as plain JSON values."""
         plain = self.to_dict()
         return {k: plain[k] for k in GENERATION_FIELDS}
+
+
+def assign_motions(cfg: DataConfig) -> list[dict]:
+    """Motion instances with their driving identity and split group, a pure function of ``cfg``.
+
+    Regular instances go round-robin (ordered by instance, then action, so every driver gets a
+    mix of actions) over all driving identities in a seeded order; held-out-action instances go
+    to seen drivers only (so the action class is the only novelty). Among the seen drivers'
+    regular instances a seeded ``unseen_instance_fraction`` becomes "unseen" (at least one when
+    the fraction is positive, never all of them).
+    """
+    library = tuple(ACTIONS)
+    actions, heldout = cfg.resolved_actions()
+    n_seen = cfg.driving_identities - cfg.unseen_driving_identities
+    rng = np.random.default_rng(derive_seed(cfg.seed, "drivers"))
+    drivers = [int(d) for d in rng.permutation(cfg.driving_identities)]
+    seen_drivers = [d for d in drivers if d < n_seen]
+    motions = []
+    for action in actions:
+        for instance in range(cfg.instances_per_action):
+            motions.append(
+                {
+                    "name": f"{action}-{instance:03d}",
+                    "action": action,
+                    "instance": instance,
+                    "seed": derive_seed(cfg.seed, "motion", library.index(action), instance),
+                }
+            )
+    regular = sorted(
+        (m for m in motions if m["action"] not in heldout),
+        key=lambda m: (m["instance"], actions.index(m["action"])),
+    )
+    for j, m in enumerate(regular):
+        m["driver"] = drivers[j % len(drivers)]
+        m["split"] = "seen" if m["driver"] < n_seen else "unseen_driver"
+    held = sorted(
+        (m for m in motions if m["action"] in heldout),
+        key=lambda m: (m["instance"], actions.index(m["action"])),
+    )
+    for j, m in enumerate(held):
+        m["driver"] = seen_drivers[j % len(seen_drivers)]
+        m["split"] = "heldout"
+    candidates = [i for i, m in enumerate(motions) if m["split"] == "seen"]
+    if cfg.unseen_instance_fraction > 0 and len(candidates) >= 2:
+        count = min(len(candidates) - 1, max(1, round(cfg.unseen_instance_fraction * len(candidates))))
+        picked = np.random.default_rng(derive_seed(cfg.seed, "unseen")).permutation(candidates)[:count]
+        for i in picked:
+            motions[int(i)]["split"] = "unseen"
+    for i, m in enumerate(motions):
+        m["id"] = i
+    return motions
 
 
 def data_config(config: dict) -> DataConfig:

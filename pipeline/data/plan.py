@@ -5,63 +5,9 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from aniformer.synth.bodies import TOPOLOGIES, sample_identities
-from aniformer.synth.motions import ACTIONS
-from pipeline.data.config import EXECUTION_FIELDS, SPLITS, DataConfig, derive_seed
+from pipeline.data.config import EXECUTION_FIELDS, SPLITS, DataConfig, assign_motions, derive_seed
 from pipeline.data.manifest import Manifest, new_manifest
-
-
-def assign_motions(cfg: DataConfig) -> list[dict]:
-    """Motion instances with their driving identity and split group, a pure function of ``cfg``.
-
-    Regular instances go round-robin (ordered by instance, then action, so every driver gets a
-    mix of actions) over all driving identities in a seeded order; held-out-action instances go
-    to seen drivers only (so the action class is the only novelty). Among the seen drivers'
-    regular instances a seeded ``unseen_instance_fraction`` becomes "unseen" (at least one when
-    the fraction is positive, never all of them).
-    """
-    library = tuple(ACTIONS)
-    actions, heldout = cfg.resolved_actions()
-    n_seen = cfg.driving_identities - cfg.unseen_driving_identities
-    rng = np.random.default_rng(derive_seed(cfg.seed, "drivers"))
-    drivers = [int(d) for d in rng.permutation(cfg.driving_identities)]
-    seen_drivers = [d for d in drivers if d < n_seen]
-    motions = []
-    for action in actions:
-        for instance in range(cfg.instances_per_action):
-            motions.append(
-                {
-                    "name": f"{action}-{instance:03d}",
-                    "action": action,
-                    "instance": instance,
-                    "seed": derive_seed(cfg.seed, "motion", library.index(action), instance),
-                }
-            )
-    regular = sorted(
-        (m for m in motions if m["action"] not in heldout),
-        key=lambda m: (m["instance"], actions.index(m["action"])),
-    )
-    for j, m in enumerate(regular):
-        m["driver"] = drivers[j % len(drivers)]
-        m["split"] = "seen" if m["driver"] < n_seen else "unseen_driver"
-    held = sorted(
-        (m for m in motions if m["action"] in heldout),
-        key=lambda m: (m["instance"], actions.index(m["action"])),
-    )
-    for j, m in enumerate(held):
-        m["driver"] = seen_drivers[j % len(seen_drivers)]
-        m["split"] = "heldout"
-    candidates = [i for i, m in enumerate(motions) if m["split"] == "seen"]
-    if cfg.unseen_instance_fraction > 0 and len(candidates) >= 2:
-        count = min(len(candidates) - 1, max(1, round(cfg.unseen_instance_fraction * len(candidates))))
-        picked = np.random.default_rng(derive_seed(cfg.seed, "unseen")).permutation(candidates)[:count]
-        for i in picked:
-            motions[int(i)]["split"] = "unseen"
-    for i, m in enumerate(motions):
-        m["id"] = i
-    return motions
 
 
 def split_table(identities: list[dict], motions: list[dict]) -> dict:
