@@ -7,17 +7,23 @@ node is the loopback node (a job's local Ray, `pipeline.cluster.connect`), every
 machine: `LoopbackTorchConfig` then meets them at a `FileStore` in the temp directory instead, and
 points gloo's and NCCL's own sockets at the loopback interface. On a cluster (a routable node IP) it
 is Ray's `TorchConfig` unchanged.
+
+When a worker has died, shutting its process group down fails, and Ray logs that as a 20-line
+`ActorDiedError` traceback from the controller; the backend says it in one line instead (the job then
+prints where it resumed, `pipeline.train.train_func`).
 """
 
 from __future__ import annotations
 
 import ipaddress
+import logging
 import os
 import tempfile
 import uuid
 from dataclasses import dataclass
 
 import ray
+from ray.exceptions import RayActorError, RayTaskError
 from ray.train._internal.utils import get_address_and_port
 from ray.train.torch.config import TorchConfig, _set_torch_distributed_env_vars, _setup_torch_process_group, _TorchBackend
 
@@ -40,7 +46,17 @@ def _use_loopback_sockets() -> None:
         os.environ["NCCL_SOCKET_IFNAME"] = name
 
 
+logger = logging.getLogger(__name__)
+
+
 class _LoopbackTorchBackend(_TorchBackend):
+    def on_shutdown(self, worker_group, backend_config: TorchConfig):
+        try:
+            super().on_shutdown(worker_group, backend_config)
+        except (RayActorError, RayTaskError) as error:
+            cause = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
+            logger.warning(f"a training worker died ({cause[:200]}); Ray Train restarts the worker group")
+
     def on_start(self, worker_group, backend_config: TorchConfig):
         address, _ = worker_group.execute_single(0, get_address_and_port)
         if not ipaddress.ip_address(address).is_loopback:

@@ -214,6 +214,9 @@ def train_func(loop_config: dict) -> None:
         tracker.set_tags({"precision": run.precision, "device": str(run.device), "world_size": world})
         if run.epoch:  # a restore (worker failure or a re-run job) is visible in the run's history
             tracker.log_metrics({"resumed_from_epoch": run.epoch}, step=run.epoch)
+    if run.epoch and rank == 0 and console and console.epoch_lines:
+        show(f"resumed from the checkpoint of epoch {run.epoch}"
+             + (" after a worker group restart" if run.epoch > first_epoch else ""))
     while run.epoch < cfg.epochs:
         started = time.perf_counter()
         bar = EpochBar(bool(console and console.progress and rank == 0), run.epoch + 1, cfg.epochs, steps,

@@ -39,6 +39,10 @@ def ray_cluster():
     from ray.cluster_utils import Cluster
 
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    dashboard_port = _free_port()  # 8265 may belong to another Ray on this machine
+    # Ray Train's placement-group cleaner looks its cluster up with no address: without this it may ask
+    # another Ray on the machine and remove a live training's placement group (pipeline/cluster.py).
+    os.environ["RAY_API_SERVER_ADDRESS"] = f"http://127.0.0.1:{dashboard_port}"
     cluster = Cluster(
         initialize_head=True,
         head_node_args={
@@ -47,7 +51,7 @@ def ray_cluster():
             # Ray Train's controller wants the dashboard; bind it to localhost only.
             "include_dashboard": True,
             "dashboard_host": "127.0.0.1",
-            "dashboard_port": _free_port(),  # 8265 may belong to another Ray on this machine
+            "dashboard_port": dashboard_port,
             # The head's dashboard agent defaults to 52365; a second head on this machine (the job
             # submission tests' `ray start --head`) would lose its agent and refuse every job.
             "dashboard_agent_listen_port": _free_port(),

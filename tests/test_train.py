@@ -175,7 +175,7 @@ def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_
         ray_cluster.remove_node(victim, allow_graceful=False)  # SIGKILL, like a lost machine
         assert job.poll() is None, "the job ended before the node was killed:\n" + output(job)[-3000:]
         restore_nodes(ray_cluster, nodes)  # STRICT_SPREAD needs two nodes to restart the workers
-        finish(job)
+        console = finish(job)
     finally:  # never leave the job running nor the shared cluster short of a node, whatever failed
         stop(job)
         restore_nodes(ray_cluster, nodes)
@@ -193,6 +193,9 @@ def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_
     assert sorted(set(epochs_logged)) == [1.0, 2.0, 3.0], epochs_logged
     assert epochs_logged[-1] == epochs and load_checkpoint(out / "last.pt")["epoch"] == epochs
     assert run.info.status == "FINISHED"
+    # the console says it in a line each, not in Ray's controller traceback
+    assert f"resumed from the checkpoint of epoch {int(restored)} after a worker group restart" in console, console[-3000:]
+    assert "Graceful shutdown of backend failed" not in console, console[-3000:]
 
 
 def test_an_interrupted_job_ends_its_run_killed_and_a_rerun_resumes_it(tmp_path, tiny_bank, ray_address, repo_root):
