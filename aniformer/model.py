@@ -35,7 +35,8 @@ Switches beyond the paper (all in `AniFormerConfig`):
                             the correction layer starts at zero, so training starts from copy-driver
     output="transfer"       the same on top of the deformation transfer of the target into each
                             driving pose (aniformer/transfer.py: the target's edges turned by the
-                            driver's per-vertex rotations); needs the faces: model(d, t, faces)
+                            driver's per-vertex rotations); needs the faces: model(d, t, faces). The
+                            result is bounding-box centred per frame, like the transfer itself
     pool_driving=True       the paper's max-pool variant for non-SMPL meshes: driving features are
                             max-pooled over vertices and broadcast to the target's vertices (used
                             automatically by attention="self" when V1 != V2)
@@ -54,6 +55,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.checkpoint import checkpoint
 
 from aniformer.config import Section
+from aniformer.mesh import center_bbox
 from aniformer.transfer import deformation_transfer
 
 ATTENTIONS = ("self", "cross")
@@ -297,8 +299,10 @@ class AniFormer(nn.Module):
             x = x.mean(dim=1, keepdim=True)  # average over the sequence, one output mesh
         if self.config.output == "absolute":
             return 2 * torch.tanh(self.to_xyz(x))
-        base = (driving if prior is None else prior)[:, self.config.output_frames()]
-        return base + self.to_xyz(x).to(driving.dtype)
+        if prior is None:
+            return driving[:, self.config.output_frames()] + self.to_xyz(x).to(driving.dtype)
+        # bounding-box centred like the prior and every mesh the model sees (the correction would move the box)
+        return center_bbox(prior[:, self.config.output_frames()] + self.to_xyz(x).to(driving.dtype))
 
     def forward_flops(self, v1: int, v2: int | None = None) -> int:
         """Matmul FLOPs (2 per multiply-add) of one forward window with V1 driving and V2 target

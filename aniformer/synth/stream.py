@@ -39,7 +39,8 @@ TRAIN_FAMILIES = {"random": 0.3, "bend": 0.1, "crouch": 0.15, "locomotion": 0.15
 TRAIN_ORIENTATIONS = {"upright": 0.5, "tilted": 0.2, "any": 0.3}
 UPRIGHT = {"upright": 1.0}
 REST_TARGET_FRACTION = 0.25
-BODIES = ("mixed", "extreme", "mismatch")
+BODIES = ("mixed", "broad", "extreme", "mismatch")
+CORNER_BODIES = 0.2  # of `broad` bodies: near the corners of the shape space, as `extreme` draws them
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,7 @@ class StreamSplit:
 
 
 SPLITS: dict[str, StreamSplit] = {
-    "train": StreamSplit(TRAIN_FAMILIES, TRAIN_ORIENTATIONS, "mixed", "train", "the training distribution"),
+    "train": StreamSplit(TRAIN_FAMILIES, TRAIN_ORIENTATIONS, "broad", "train", "the training distribution"),
     "seen": StreamSplit(TRAIN_FAMILIES, TRAIN_ORIENTATIONS, "mixed", "val",
                         "validation: the training distribution, fresh bodies and windows"),
     "unseen": StreamSplit(TRAIN_FAMILIES, {"any": 1.0}, "extreme", "val",
@@ -124,24 +125,27 @@ def sample_body_pairs(rngs: Sequence[np.random.Generator], bodies: str) -> np.nd
     ``mixed``: 60% Anny's WHO-calibrated adults, 40% with muscle, weight, height and proportions
     uniform in [0, 1] (the extremes of the shape space); ``extreme``: each of those and gender
     within 0.12 of 0 or 1; ``mismatch``: like ``extreme``, the target at the opposite corner of
-    the driver in muscle, weight and height."""
+    the driver in muscle, weight and height; ``broad`` (training): ``mixed``, with each body
+    independently an ``extreme`` one at rate ``CORNER_BODIES``: in ``mixed`` a short target under a
+    tall driver is rare, and the learned correction was worse than none there."""
     from aniformer.synth.bodies import PHENOTYPE_KEYS
 
     pheno = _calibrated_adults(rngs)
     free = ("muscle", "weight", "height", "proportions")
-    if bodies == "mixed":
+    if bodies in ("mixed", "broad"):
         uniform = np.stack([rng.random(2) < 0.4 for rng in rngs])
         values = np.stack([rng.random((2, 4)) for rng in rngs])
         for j, k in enumerate(free):
             pheno[k] = np.where(uniform, values[..., j], pheno[k])
-    else:
+    if bodies != "mixed":
         corner = np.stack([rng.random((2, 5)) < 0.5 for rng in rngs])
         if bodies == "mismatch":
             corner[:, 1, :3] = ~corner[:, 0, :3]  # muscle, weight, height opposite
         spread = 0.12 * np.stack([rng.random((2, 5)) for rng in rngs])
         values = np.where(corner, 1 - spread, spread)
+        extreme = np.stack([rng.random(2) < CORNER_BODIES for rng in rngs]) if bodies == "broad" else True
         for j, k in enumerate((*free, "gender")):
-            pheno[k] = values[..., j]
+            pheno[k] = np.where(extreme, values[..., j], pheno[k])
     return np.clip(np.stack([pheno[k] for k in PHENOTYPE_KEYS], axis=-1), 0, 1).astype(np.float32)
 
 
