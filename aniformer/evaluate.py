@@ -39,6 +39,7 @@ Predict = Callable[[torch.Tensor, torch.Tensor, torch.Tensor | None], torch.Tens
 COPY_DRIVER, STATIC_TARGET, TRANSFER = "copy-driver", "static target", "deformation transfer"
 BASELINES = (COPY_DRIVER, STATIC_TARGET, TRANSFER)
 DEFAULT_CLIP_FRAMES = 16  # the acceleration error's clips: half a second at 30 fps, 14 model windows
+DEFAULT_CLIP_PAIRS = 64  # clips per split: each is animated window by window, ~40x a pair's cost
 
 
 @dataclass

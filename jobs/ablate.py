@@ -58,6 +58,7 @@ def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: in
     from aniformer.checkpoint import model_from_checkpoint
     from aniformer.evaluate import (
         DEFAULT_CLIP_FRAMES,
+        DEFAULT_CLIP_PAIRS,
         Samplers,
         clip_accelerations,
         copy_driver_contender,
@@ -94,7 +95,8 @@ def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: in
     if first.source != "stream":
         return table, splits, None
     clips = make_sampler(DEFAULT_CLIP_FRAMES, "none")
-    per_split = {split: clip_accelerations(contenders, clips, split, pairs=pairs) for split in splits}
+    per_split = {split: clip_accelerations(contenders, clips, split, pairs=min(pairs, DEFAULT_CLIP_PAIRS))
+                 for split in splits}
     return table, splits, {c.name: {split: float(per_split[split][c.name].mean()) for split in splits} for c in contenders}
 
 

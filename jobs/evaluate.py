@@ -60,6 +60,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--clip-frames", type=int, metavar="N",
                    help="stream checkpoints: also animate clips of N frames, window sliding as in animate.py, and "
                         "report the acceleration error (jitter) beside PMD (default 16; 0 for none)")
+    p.add_argument("--clip-pairs", type=int, metavar="N",
+                   help="clips per split for the acceleration error (default: --pairs, at most 64)")
     p.add_argument("--seed", type=int, help="pair seed (default: the checkpoint's data.seed, as in training)")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--no-copy-driver", action="store_true",
@@ -100,6 +102,8 @@ def check_flags(args: argparse.Namespace) -> tuple[list[float] | None, list[tupl
         raise UserError(f"--pairs must be >= 1, got {args.pairs}")
     if args.batch_size < 1:
         raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
+    if args.clip_pairs is not None and args.clip_pairs < 1:
+        raise UserError(f"--clip-pairs must be >= 1, got {args.clip_pairs}")
     if args.clip_frames is not None and args.clip_frames != 0 and args.clip_frames < 3:
         raise UserError(f"--clip-frames must be 0 (none) or >= 3 (an acceleration needs three frames), got {args.clip_frames}")
     from aniformer.evaluate import parse_levels
@@ -178,13 +182,14 @@ def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, 
     markdown += "\n" + table_markdown(spread, splits, title="Standard deviation of PMD over the pairs of each split")
     acceleration = acceleration_sd = None
     if accelerations is not None:
+        clips = len(next(iter(next(iter(accelerations.values())).values())))
         acceleration = {name: {s: float(v.mean()) for s, v in row.items()} for name, row in accelerations.items()}
         acceleration_sd = {name: {s: float(v.std(ddof=1)) if len(v) > 1 else float("nan") for s, v in row.items()}
                            for name, row in accelerations.items()}
         markdown += "\n" + table_markdown(
             acceleration, splits, ratios=True,
-            title=f"Acceleration error (mm/frame², lower is better): clips of {clip_frames} frames, each method's "
-                  "window sliding over the clip as in animate.py; predicted against true vertex accelerations")
+            title=f"Acceleration error (mm/frame², lower is better): {clips} clips of {clip_frames} frames per split, "
+                  "each method's window sliding over the clip as in animate.py; predicted against true vertex accelerations")
         markdown += "\n" + table_markdown(acceleration_sd, splits, title="Standard deviation of the acceleration error")
     if refused is not None:
         markdown += "\n" + refusals_line(refused) + "\n"
@@ -201,7 +206,8 @@ def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, 
     if refused is not None:
         result["refused"] = {variant: [bool(r) for r in values] for variant, values in refused.items()}
     if acceleration is not None:
-        result |= {"clip_frames": clip_frames, "acceleration": acceleration, "acceleration_sd": acceleration_sd}
+        result |= {"clip_frames": clip_frames, "clip_pairs": clips, "acceleration": acceleration,
+                   "acceleration_sd": acceleration_sd}
 
     return markdown, result
 
@@ -260,7 +266,7 @@ def score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_s
     errors}} or None), with a progress bar on stderr."""
     from tqdm import tqdm
 
-    from aniformer.evaluate import Samplers, clip_accelerations, evaluate_pairs, noise_sweep, target_pmds
+    from aniformer.evaluate import DEFAULT_CLIP_PAIRS, Samplers, clip_accelerations, evaluate_pairs, noise_sweep, target_pmds
 
     model = rows[0][1]
     if args.targets is not None:
@@ -281,9 +287,10 @@ def score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_s
         accelerations = None
         if clip_frames:
             clips = make_sampler(clip_frames, "none")
+            clip_pairs = args.clip_pairs or min(pairs, DEFAULT_CLIP_PAIRS)
             accelerations = {c.name: {} for c in contenders}
             for split in splits:
-                for name, values in clip_accelerations(contenders, clips, split, pairs=pairs).items():
+                for name, values in clip_accelerations(contenders, clips, split, pairs=clip_pairs).items():
                     accelerations[name][split] = values
                 bar.update(1)
     return scores, sweep, None, accelerations
@@ -415,7 +422,7 @@ def _log_to_mlflow(job: str, args, files: Path, table, sweep, pairs, seed, split
 
     params = {"evaluate": {"checkpoint": args.checkpoint, "bank": str(args.bank or ""), "topology": args.topology or "",
                            "pairs": pairs, "seed": seed, "splits": splits, "clip_frames": args.clip_frames,
-                           "compare": args.compare, "noise": args.noise or ""}, **config}
+                           "clip_pairs": args.clip_pairs, "compare": args.compare, "noise": args.noise or ""}, **config}
     try:
         tracker = start_job_run(job, params, experiment=args.experiment, out=Path(args.out).expanduser().resolve())
         with tracker.ended():

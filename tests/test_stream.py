@@ -177,12 +177,12 @@ def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monk
     assert (out / "best.pt").is_file() and not (out / "bank").exists()
     assert "trained run: epoch 1" in capsys.readouterr().out
     run(job_main("evaluate"), ["--checkpoint", str(out / "best.pt"), "--out", str(tmp_path / "eval"), "--pairs", "2",
-                               "--splits", "seen,rotated,build_mismatch", "--clip-frames", "6", "--no-mlflow",
-                               "--no-progress"])
+                               "--splits", "seen,rotated,build_mismatch", "--clip-frames", "6", "--clip-pairs", "1",
+                               "--no-mlflow", "--no-progress"])
     rows = {r["method"]: r for r in csv.DictReader((tmp_path / "eval" / "results.csv").open())}
     assert list(rows) == ["AniFormer", "copy-driver", "static target", "deformation transfer"]
     result = json.loads((tmp_path / "eval" / "results.json").read_text())
-    assert result["clip_frames"] == 6 and set(result["acceleration"]) == set(rows)
+    assert (result["clip_frames"], result["clip_pairs"]) == (6, 1) and set(result["acceleration"]) == set(rows)
     assert all(set(v) == {"seen", "rotated", "build_mismatch"} for v in result["acceleration"].values())
     markdown = (tmp_path / "eval" / "results.md").read_text()
     ratio = float(rows["AniFormer"]["seen"]) / float(rows["deformation transfer"]["seen"])
