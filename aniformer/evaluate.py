@@ -355,8 +355,7 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
         """Each row's template posed by a whole driving ``clip (N, V, 3)`` on the template."""
         return {"model": animate_sequence(rows["model"], clip, target, window=model.config.window, outputs=frames,
                                           device=device),
-                TRANSFER: rows[TRANSFER](torch.from_numpy(clip[None]),
-                                                                     torch.from_numpy(target[None]))[0].numpy()}
+                TRANSFER: rows[TRANSFER](torch.from_numpy(clip[None]), torch.from_numpy(target[None]))[0].numpy()}
 
     for lo in range(0, pairs, batch_size):
         for pair in variant_pairs(stream, split, 0, range(lo, min(pairs, lo + batch_size)), variants):

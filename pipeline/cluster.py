@@ -61,7 +61,7 @@ def _free_local_port() -> int:
         return probe.getsockname()[1]
 
 
-def _root_line(error: BaseException) -> str:
+def root_line(error: BaseException) -> str:
     """A Ray error and its innermost cause in one line. Ray puts a whole traceback into its "Failed to
     connect to GCS" message: the traceback's last line is the exception."""
     outer = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
@@ -123,7 +123,7 @@ def connect() -> str | None:
         try:
             return ray.init(address=address, log_to_driver=True).dashboard_url or None
         except (ConnectionError, RuntimeError) as error:
-            raise UserError(f"RAY_ADDRESS {address}: cannot connect to Ray: {_root_line(error)}") from None
+            raise UserError(f"RAY_ADDRESS {address}: cannot connect to Ray: {root_line(error)}") from None
     _local_node_only()
     # Ray 2.60 turns token auth on for a new local cluster and says so with an opt-out hint: on is our default.
     logging.getLogger("ray._private.authentication.authentication_token_setup").setLevel(logging.ERROR)
@@ -133,7 +133,7 @@ def connect() -> str | None:
         context = ray.init(address="local", _node_ip_address=LOCALHOST, include_dashboard=True,
                            dashboard_host=LOCALHOST, dashboard_port=dashboard_port, log_to_driver=True)
     except (ConnectionError, RuntimeError, OSError) as error:  # OSError: its temp dir (RAY_TMPDIR) unusable
-        raise UserError(f"a local Ray instance could not start: {_root_line(error)}") from None
+        raise UserError(f"a local Ray instance could not start: {root_line(error)}") from None
     node_ip = ray.util.get_node_ip_address()
     if node_ip != LOCALHOST:  # a Ray release that resolves the address another way: never listen outside
         ray.shutdown()

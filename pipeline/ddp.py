@@ -27,13 +27,17 @@ from ray.exceptions import RayActorError, RayTaskError
 from ray.train._internal.utils import get_address_and_port
 from ray.train.torch.config import TorchConfig, _set_torch_distributed_env_vars, _setup_torch_process_group, _TorchBackend
 
+from pipeline.cluster import LOCALHOST, root_line
+
+logger = logging.getLogger(__name__)
+
 
 def loopback_interface() -> str | None:
     """The name of the network interface that holds 127.0.0.1 (``lo`` on Linux, ``lo0`` on macOS)."""
     import psutil  # Ray's vendored copy, on the path once ray is imported
 
     for name, addresses in psutil.net_if_addrs().items():
-        if any(a.address == "127.0.0.1" for a in addresses):
+        if any(a.address == LOCALHOST for a in addresses):
             return name
     return None
 
@@ -46,16 +50,12 @@ def _use_loopback_sockets() -> None:
         os.environ["NCCL_SOCKET_IFNAME"] = name
 
 
-logger = logging.getLogger(__name__)
-
-
 class _LoopbackTorchBackend(_TorchBackend):
     def on_shutdown(self, worker_group, backend_config: TorchConfig):
         try:
             super().on_shutdown(worker_group, backend_config)
         except (RayActorError, RayTaskError) as error:
-            cause = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
-            logger.warning(f"a training worker died ({cause[:200]}); Ray Train restarts the worker group")
+            logger.warning(f"a training worker died ({root_line(error)[:200]}); Ray Train restarts the worker group")
 
     def on_start(self, worker_group, backend_config: TorchConfig):
         address, _ = worker_group.execute_single(0, get_address_and_port)
