@@ -471,104 +471,98 @@ def test_animate_job_quads_are_triangulated(inputs, tmp_path):
     assert read_glb(tmp_path / "o" / "animation.glb")["faces"].shape == (4, 3)
 
 
-def _bad(kind: str, root: Path, inputs: dict) -> tuple[list, str]:
-    """Arguments for one bad-input case and a word its error line must contain."""
-    ckpt, target, driving = inputs["checkpoint"], inputs["target"], inputs["driving"]
-    drv = root / "drv"
+def _write(path: Path, data: str | bytes) -> Path:
+    path.write_bytes(data if isinstance(data, bytes) else data.encode())
+    return path
 
-    def driver_with(name: str, text: str | bytes) -> Path:
-        write_driver(drv, 3)
-        path = drv / name
-        path.write_bytes(text if isinstance(text, bytes) else text.encode())
-        return drv
 
-    def target_with(text: str) -> Path:
-        (root / "t.obj").write_text(text)
-        return root / "t.obj"
+def _mkdir(path: Path) -> Path:
+    path.mkdir()
+    return path
 
-    args = {"checkpoint": ckpt, "target": target, "driving": driving}
-    word = ""
-    if kind == "missing target":
-        args["target"], word = root / "nope.obj", "no such file"
-    elif kind == "missing driving":
-        args["driving"], word = root / "nope", "no file matches"
-    elif kind == "empty driving dir":
-        (root / "empty").mkdir()
-        args["driving"], word = root / "empty", "no mesh files"
-    elif kind == "garbage bytes":
-        args["driving"], word = driver_with("frame_1.ply", os.urandom(300)), "cannot read"
-    elif kind == "garbage obj":
-        args["target"], word = root / "g.obj", "empty"
-        (root / "g.obj").write_bytes(b"\x00\xff" * 50)
-    elif kind == "unsupported format":
-        (root / "t.txt").write_text("v 0 0 0")
-        args["target"], word = root / "t.txt", "unsupported"
-    elif kind == "empty file":
-        args["driving"], word = driver_with("frame_1.obj", b""), "empty"
-    elif kind == "no vertices":
-        args["driving"], word = driver_with("frame_1.obj", "# only a comment\n"), "empty"
-    elif kind == "nan":
-        args["driving"], word = driver_with("frame_1.obj", "v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n"), "NaN"
-    elif kind == "inf target":
-        args["target"], word = target_with("v 0 0 0\nv inf 0 0\nv 0 1 0\nf 1 2 3\n"), "infinity"
-    elif kind == "face out of range":
-        args["target"], word = target_with("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n"), "t.obj"
-    elif kind == "face out of range ply":
-        mesh = trimesh.Trimesh(*body(1), process=False)
-        data = mesh.export(file_type="ply", encoding="ascii").replace(b"3 0 ", b"3 999 ", 1)
-        (root / "t.ply").write_bytes(data)
-        args["target"], word = root / "t.ply", "out of range"
-    elif kind == "other faces":
-        write_driver(drv, 3)
-        v, f = body(2)
-        trimesh.Trimesh(v, np.roll(f, 1, axis=0), process=False).export(drv / "frame_2.obj")
-        args["driving"], word = drv, "frame_2.obj: other faces than the first driving frame"
-    elif kind == "huge coordinates":
-        args["target"], word = target_with("v 0 0 0\nv 1e30 0 0\nv 0 1 0\nf 1 2 3\n"), "reaches 1e+30 m"
-    elif kind == "centimetres read as metres":
-        args["target"], word = target_with("v 0 0 0\nv 0 0 1700\nv 0 1 0\nf 1 2 3\n"), "wrong --unit?"
-    elif kind == "bad unit":
-        return [*_argv(args, root), "--unit", "inch"], "invalid choice: 'inch'"
-    elif kind == "bad fps sidecar":
-        args["driving"], word = driver_with("sequence.json", '{"fps": "fast"}'), "fps must be a positive number"
-    elif kind == "too many morph targets":
-        return [*_argv(args, root), "--frames-per-mesh", "4096"], "cannot play more than 2,048 morph targets"
-    elif kind == "glb over 2 GiB":
-        big = trimesh.creation.icosphere(subdivisions=6)  # 40,962 vertices x 4,400 frames x 12 bytes > 2 GiB
-        trimesh.Trimesh(big.vertices, big.faces, process=False).export(root / "big.ply")
-        drv.mkdir()
-        for k in range(4400):  # only counted before the refusal, never read
-            (drv / f"f{k}.obj").touch()
-        args["target"], args["driving"], word = root / "big.ply", drv, "glTF clients load at most 2 GiB"
-    elif kind == "mixed vertex counts":
-        write_driver(drv, 3)
-        trimesh.Trimesh(*body(1), process=False).export(drv / "frame_2.obj")
-        args["driving"], word = drv, "frame_2.obj: 42 vertices"
-    elif kind == "over size limit":
-        return [*_argv(args, root), "--max-vertices", "500"], "exceeds the limit of 500"
-    elif kind == "too many frames":
-        return [*_argv(args, root), "--max-frames", "10"], "exceeds --max-frames"
-    elif kind == "garbage checkpoint":
-        (root / "bad.pt").write_bytes(os.urandom(200))
-        args["checkpoint"], word = root / "bad.pt", "not a readable checkpoint"
-    elif kind == "checkpoint config mismatch":
-        state = torch.load(ckpt, weights_only=True)
-        state["config"]["model"]["channels"] = [32]
-        torch.save(state, root / "mismatch.pt")
-        args["checkpoint"], word = root / "mismatch.pt", "does not match its model config"
-    elif kind == "missing checkpoint":
-        args["checkpoint"], word = root / "none.pt", "checkpoint not found"
-    elif kind == "bad argument":
-        return [*_argv(args, root), "--batch-size", "0"], "--batch-size must be >= 1"
-    elif kind == "bone names without a rig":
-        return [*_argv(args, root), "--bone-names", "mixamo"], "--bone-names names the rig's joints: add --rig"
-    elif kind == "unknown option":
-        return [*_argv(args, root), "--frobnicate"], "unrecognized arguments"
-    elif kind == "out not empty":
-        (root / "out").mkdir()
-        (root / "out" / "keep.txt").write_text("precious")
-        return _argv(args, root), "not empty"
-    return _argv(args, root), word
+
+def _driver_with(root: Path, name: str, data: str | bytes) -> Path:
+    """A 3-frame driving folder with one extra file."""
+    write_driver(root / "drv", 3)
+    _write(root / "drv" / name, data)
+    return root / "drv"
+
+
+def _driver_then(root: Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
+    """A 3-frame driving folder whose second frame is another mesh."""
+    write_driver(root / "drv", 3)
+    trimesh.Trimesh(vertices, faces, process=False).export(root / "drv" / "frame_2.obj")
+    return root / "drv"
+
+
+def _ply_face_out_of_range(root: Path) -> Path:
+    data = trimesh.Trimesh(*body(1), process=False).export(file_type="ply", encoding="ascii")
+    return _write(root / "t.ply", data.replace(b"3 0 ", b"3 999 ", 1))
+
+
+def _glb_over_2gib(root: Path) -> dict:
+    big = trimesh.creation.icosphere(subdivisions=6)  # 40,962 vertices x 4,400 frames x 12 bytes > 2 GiB
+    trimesh.Trimesh(big.vertices, big.faces, process=False).export(root / "big.ply")
+    (root / "drv").mkdir()
+    for k in range(4400):  # only counted before the refusal, never read
+        (root / "drv" / f"f{k}.obj").touch()
+    return {"target": root / "big.ply", "driving": root / "drv"}
+
+
+def _checkpoint_of_another_config(root: Path, checkpoint: Path) -> Path:
+    state = torch.load(checkpoint, weights_only=True)
+    state["config"]["model"]["channels"] = [32]
+    torch.save(state, root / "mismatch.pt")
+    return root / "mismatch.pt"
+
+
+def _out_not_empty(root: Path) -> dict:
+    (root / "out").mkdir()
+    _write(root / "out" / "keep.txt", "precious")
+    return {}
+
+
+TRIANGLE = "v 0 0 0\nv {} 0 0\nv 0 1 0\nf 1 2 {}\n"
+# kind -> (root, inputs) -> (the inputs it replaces, extra arguments, a word its error line must contain)
+BAD_CASES = {
+    "missing target": lambda r, i: ({"target": r / "nope.obj"}, [], "no such file"),
+    "missing driving": lambda r, i: ({"driving": r / "nope"}, [], "no file matches"),
+    "empty driving dir": lambda r, i: ({"driving": _mkdir(r / "empty")}, [], "no mesh files"),
+    "garbage bytes": lambda r, i: ({"driving": _driver_with(r, "frame_1.ply", os.urandom(300))}, [], "cannot read"),
+    "garbage obj": lambda r, i: ({"target": _write(r / "g.obj", b"\x00\xff" * 50)}, [], "empty"),
+    "unsupported format": lambda r, i: ({"target": _write(r / "t.txt", "v 0 0 0")}, [], "unsupported"),
+    "empty file": lambda r, i: ({"driving": _driver_with(r, "frame_1.obj", b"")}, [], "empty"),
+    "no vertices": lambda r, i: ({"driving": _driver_with(r, "frame_1.obj", "# only a comment\n")}, [], "empty"),
+    "nan": lambda r, i: ({"driving": _driver_with(r, "frame_1.obj", TRIANGLE.format("nan", 3))}, [], "NaN"),
+    "inf target": lambda r, i: ({"target": _write(r / "t.obj", TRIANGLE.format("inf", 3))}, [], "infinity"),
+    "face out of range": lambda r, i: ({"target": _write(r / "t.obj", TRIANGLE.format(1, 9))}, [], "t.obj"),
+    "face out of range ply": lambda r, i: ({"target": _ply_face_out_of_range(r)}, [], "out of range"),
+    "mixed vertex counts": lambda r, i: ({"driving": _driver_then(r, *body(1))}, [], "frame_2.obj: 42 vertices"),
+    "other faces": lambda r, i: ({"driving": _driver_then(r, body(2)[0], np.roll(body(2)[1], 1, axis=0))}, [],
+                                 "frame_2.obj: other faces than the first driving frame"),
+    "huge coordinates": lambda r, i: ({"target": _write(r / "t.obj", TRIANGLE.format("1e30", 3))}, [],
+                                      "reaches 1e+30 m"),
+    "centimetres read as metres": lambda r, i: (
+        {"target": _write(r / "t.obj", "v 0 0 0\nv 0 0 1700\nv 0 1 0\nf 1 2 3\n")}, [], "wrong --unit?"),
+    "bad unit": lambda r, i: ({}, ["--unit", "inch"], "invalid choice: 'inch'"),
+    "bad fps sidecar": lambda r, i: ({"driving": _driver_with(r, "sequence.json", '{"fps": "fast"}')}, [],
+                                     "fps must be a positive number"),
+    "too many morph targets": lambda r, i: ({}, ["--frames-per-mesh", "4096"],
+                                            "cannot play more than 2,048 morph targets"),
+    "glb over 2 GiB": lambda r, i: (_glb_over_2gib(r), [], "glTF clients load at most 2 GiB"),
+    "over size limit": lambda r, i: ({}, ["--max-vertices", "500"], "exceeds the limit of 500"),
+    "too many frames": lambda r, i: ({}, ["--max-frames", "10"], "exceeds --max-frames"),
+    "garbage checkpoint": lambda r, i: ({"checkpoint": _write(r / "bad.pt", os.urandom(200))}, [],
+                                        "not a readable checkpoint"),
+    "checkpoint config mismatch": lambda r, i: ({"checkpoint": _checkpoint_of_another_config(r, i["checkpoint"])},
+                                                [], "does not match its model config"),
+    "missing checkpoint": lambda r, i: ({"checkpoint": r / "none.pt"}, [], "checkpoint not found"),
+    "bad argument": lambda r, i: ({}, ["--batch-size", "0"], "--batch-size must be >= 1"),
+    "bone names without a rig": lambda r, i: ({}, ["--bone-names", "mixamo"],
+                                              "--bone-names names the rig's joints: add --rig"),
+    "unknown option": lambda r, i: ({}, ["--frobnicate"], "unrecognized arguments"),
+    "out not empty": lambda r, i: (_out_not_empty(r), [], "not empty"),
+}
 
 
 def _argv(args: dict, root: Path) -> list:
@@ -576,18 +570,10 @@ def _argv(args: dict, root: Path) -> list:
             "--out", root / "out", "--no-progress"]
 
 
-BAD_CASES = ["missing target", "missing driving", "empty driving dir", "garbage bytes", "garbage obj",
-             "unsupported format", "empty file", "no vertices", "nan", "inf target", "face out of range",
-             "face out of range ply", "mixed vertex counts", "other faces", "huge coordinates",
-             "centimetres read as metres", "bad unit", "bad fps sidecar", "too many morph targets", "glb over 2 GiB",
-             "over size limit", "too many frames", "garbage checkpoint",
-             "checkpoint config mismatch", "missing checkpoint", "bad argument", "bone names without a rig", "unknown option",
-             "out not empty"]
-
-
 @pytest.mark.parametrize("kind", BAD_CASES)
 def test_animate_bad_input_is_one_line_and_leaves_nothing(kind, inputs, tmp_path, capsys):
-    argv, word = _bad(kind, tmp_path, inputs)
+    replaced, extra, word = BAD_CASES[kind](tmp_path, inputs)
+    argv = [*_argv({**inputs, **replaced}, tmp_path), *extra]
     before = set(tmp_path.iterdir())
     with pytest.raises(SystemExit) as exc:
         run(animate_main, [str(a) for a in argv])
