@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import sys
+import types
 from pathlib import Path
 
 import pytest
@@ -93,6 +94,20 @@ def job_main():
         return job.main
 
     return load
+
+
+@pytest.fixture(scope="session")
+def scoring():
+    """What a job's PMD table must say, recomputed independently of ``aniformer.evaluate``:
+    ``scoring.pmd(sampler, split, pairs, predict, frames)``, with ``scoring.static_target`` and
+    ``scoring.model_predict(model)`` as predictors (None: copy-driver)."""
+    return types.SimpleNamespace(pmd=recomputed_pmd, static_target=static_target, model_predict=model_predict)
+
+
+@pytest.fixture(scope="session")
+def read_line():
+    """``read_line(stream, timeout, what)``: one line of a pipe within ``timeout`` seconds (``readline``)."""
+    return readline
 
 
 def readline(stream, timeout: float, what: str) -> str:

@@ -120,7 +120,7 @@ def test_pmd_table_is_an_mlflow_table_replaced_when_logged_again(tmp_path, monke
 
 @pytest.mark.slow
 @pytest.mark.ray
-def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address):
+def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address, scoring):
     from mlflow.tracking import MlflowClient
 
     config = write_config(tmp_path / "ablation.yaml", {
@@ -138,8 +138,6 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address)
                          "deformation transfer"}
     splits = json.loads((out / "ablation.json").read_text())["splits"]
     assert {"seen", "unseen"} <= set(splits)
-    from conftest import model_predict, recomputed_pmd, static_target
-
     from aniformer.checkpoint import load_checkpoint, model_from_checkpoint
     from aniformer.cli import load_config
     from pipeline.ablation import slug
@@ -157,12 +155,12 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address)
     models = {row: (model_from_checkpoint(out / "runs" / slug(row) / "best.pt")[0], shuffle)
               for row, shuffle in {"AniFormer (full)": tiny.data.shuffle, "cross, shuffle both": "both"}.items()}
     for split in splits:
-        assert float(rows["copy-driver"][split]) == pytest.approx(recomputed_pmd(sampler("none"), split, 16), rel=1e-4)
+        assert float(rows["copy-driver"][split]) == pytest.approx(scoring.pmd(sampler("none"), split, 16), rel=1e-4)
         assert float(rows["static target"][split]) == pytest.approx(
-            recomputed_pmd(sampler("none"), split, 16, static_target), rel=1e-4)
+            scoring.pmd(sampler("none"), split, 16, scoring.static_target), rel=1e-4)
         for row, (model, shuffle) in models.items():
-            assert float(rows[row][split]) == pytest.approx(recomputed_pmd(
-                sampler(shuffle), split, 16, model_predict(model), model.config.output_frames()), rel=1e-4), (row, split)
+            assert float(rows[row][split]) == pytest.approx(scoring.pmd(
+                sampler(shuffle), split, 16, scoring.model_predict(model), model.config.output_frames()), rel=1e-4), (row, split)
     # each variant's checkpoint was trained (1 epoch) with that variant's overrides, the base with none
     for variant, trained_with in {"aniformer_full": (tiny.model.attention, tiny.data.shuffle),
                                   "cross_shuffle_both": ("cross", "both")}.items():

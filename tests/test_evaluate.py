@@ -166,7 +166,7 @@ def tiny_run(ray_cluster, tmp_path_factory) -> Path:
 
 @pytest.mark.slow
 @pytest.mark.ray
-def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, capsys):
+def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, capsys, scoring):
     import mlflow
     from mlflow.tracking import MlflowClient
 
@@ -189,8 +189,6 @@ def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, ca
                                            "deformation transfer"]
     assert list(rows[0]) == ["method", *splits]
     # each row is its predictor's PMD on the same 4 pairs (the checkpoint's seed), recomputed here from the bank
-    from conftest import model_predict, recomputed_pmd, static_target
-
     from pipeline.data import PairSampler, load_bank
 
     bank = load_bank(tiny_run / "bank")
@@ -202,11 +200,11 @@ def test_evaluate_job_end_to_end_with_mlflow(tiny_run, tmp_path, monkeypatch, ca
     model, _ = model_from_checkpoint(tiny_run / "best.pt")
     table = {r["method"]: r for r in rows}
     for split in splits:
-        assert float(table["copy-driver"][split]) == pytest.approx(recomputed_pmd(sampler("none"), split, 4), rel=1e-4)
+        assert float(table["copy-driver"][split]) == pytest.approx(scoring.pmd(sampler("none"), split, 4), rel=1e-4)
         assert float(table["static target"][split]) == pytest.approx(
-            recomputed_pmd(sampler("none"), split, 4, static_target), rel=1e-4)
-        assert float(table["tiny"][split]) == pytest.approx(recomputed_pmd(
-            sampler(TINY_DATA["shuffle"]), split, 4, model_predict(model), model.config.output_frames()), rel=1e-4)
+            scoring.pmd(sampler("none"), split, 4, scoring.static_target), rel=1e-4)
+        assert float(table["tiny"][split]) == pytest.approx(scoring.pmd(
+            sampler(TINY_DATA["shuffle"]), split, 4, scoring.model_predict(model), model.config.output_frames()), rel=1e-4)
     md = (out / "results.md").read_text()
     for name in ("tiny", "NPT", "regression head", "copy-driver", "static target", "deformation transfer"):
         assert f"| {name} |" in md

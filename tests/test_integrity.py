@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import readline
 
 from aniformer.cli import load_config, run
 from aniformer.errors import UserError
@@ -232,14 +231,14 @@ HOLDER = textwrap.dedent("""
 
 
 @pytest.fixture
-def holder(tmp_path):
+def holder(tmp_path, read_line):
     """`holder(out)`: a second process that holds the lock on `out` until the test ends (or kills it)."""
     procs = []
 
     def start(out: Path) -> subprocess.Popen:
         proc = subprocess.Popen([PY, "-c", HOLDER.format(root=str(ROOT)), str(out)], stdout=subprocess.PIPE, text=True)
         procs.append(proc)
-        assert readline(proc.stdout, 60, "the lock holder").strip() == "locked"
+        assert read_line(proc.stdout, 60, "the lock holder").strip() == "locked"
         return proc
 
     yield start
@@ -556,10 +555,10 @@ SLEEPER = textwrap.dedent("""
 """)
 
 
-def test_sigterm_exits_143_with_one_line_whatever_the_stack_makes_of_it():
+def test_sigterm_exits_143_with_one_line_whatever_the_stack_makes_of_it(read_line):
     proc = subprocess.Popen([PY, "-c", SLEEPER.format(root=str(ROOT))], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
-    assert readline(proc.stdout, 60, "the sleeping job").strip() == "ready"
+    assert read_line(proc.stdout, 60, "the sleeping job").strip() == "ready"
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 143 and err == "terminated (SIGTERM)\n", err
