@@ -308,8 +308,8 @@ def test_a_jobs_local_ray_listens_on_localhost_only():
     assert not outside, f"listening beyond this machine: {outside}"
 
 
-TRAINING_LISTENERS = """
-import json, sys, threading, time, ray, psutil  # psutil: Ray's vendored copy, on the path after ray
+JOB_LISTENERS = """
+import importlib, json, sys, threading, time, ray, psutil  # psutil: Ray's vendored copy, on the path after ray
 found, stop = set(), threading.Event()
 
 def watch():
@@ -325,11 +325,33 @@ def watch():
         time.sleep(0.2)
 
 threading.Thread(target=watch, daemon=True).start()
-from jobs.train import main
-main(sys.argv[1:])
+importlib.import_module(f"jobs.{sys.argv[1]}").main(sys.argv[2:])
 stop.set()
 print(json.dumps(sorted(found)))
 """
+
+
+def job_listeners(job: str, args: list[str], tmp_path: Path) -> list[tuple[str, int, str]]:
+    """Every (address, port, process) the job and its own local Ray listened on while it ran (sampled every
+    0.2 s), the job run as a user runs it: no RAY_ADDRESS, its own Ray temp dir and MLflow store."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    env |= {"RAY_TMPDIR": tempfile.mkdtemp(prefix="ray", dir="/tmp"), "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'm.db'}"}
+    try:
+        done = subprocess.run([sys.executable, "-c", JOB_LISTENERS, job, *args], cwd=ROOT, env=env, capture_output=True,
+                              text=True, timeout=600)
+    finally:
+        shutil.rmtree(env["RAY_TMPDIR"], ignore_errors=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return [tuple(entry) for entry in json.loads(done.stdout.strip().splitlines()[-1])]
+
+
+def beyond_this_machine(listeners: list) -> list:
+    return [entry for entry in listeners if entry[0] not in ("127.0.0.1", "::ffff:127.0.0.1", "::1")]
+
+
+# A training of one epoch on 16 pairs made on the fly: no bank to generate.
+STREAM = ["data.source=stream", "data.shuffle=none", "data.pairs_per_epoch=16", "data.eval_pairs=4", "train.epochs=1",
+          "model.output=transfer"]
 
 
 @pytest.mark.slow
@@ -337,21 +359,40 @@ def test_a_local_ddp_training_listens_on_localhost_only(tmp_path):
     """jobs/train.py on its own local Ray with two DDP workers: every socket any of its processes listened on
     while it trained. torch's rendezvous store listens on every interface; the job meets its workers at a
     file store instead (pipeline/ddp.py), and gloo's sockets are on the loopback interface."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
-    env |= {"RAY_TMPDIR": tempfile.mkdtemp(prefix="ray", dir="/tmp"), "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'm.db'}"}
-    args = ["--config", str(TINY), "--out", str(tmp_path / "out"), "--no-register", "--no-progress", "data.source=stream",
-            "data.shuffle=none", "data.pairs_per_epoch=16", "data.eval_pairs=4", "train.epochs=1", "model.output=transfer",
-            "train.workers=2", "train.cpus_per_worker=0.5"]
-    try:
-        done = subprocess.run([sys.executable, "-c", TRAINING_LISTENERS, *args], cwd=ROOT, env=env, capture_output=True,
-                              text=True, timeout=600)
-    finally:
-        shutil.rmtree(env["RAY_TMPDIR"], ignore_errors=True)
-    assert done.returncode == 0, done.stderr[-3000:]
-    listeners = json.loads(done.stdout.strip().splitlines()[-1])
+    listeners = job_listeners("train", ["--config", str(TINY), "--out", str(tmp_path / "out"), "--no-register",
+                                        "--no-progress", *STREAM, "train.workers=2", "train.cpus_per_worker=0.5"], tmp_path)
     assert any(name.startswith("ray::RayTrainWorker") for _, _, name in listeners), listeners
-    outside = [entry for entry in listeners if entry[0] not in ("127.0.0.1", "::ffff:127.0.0.1", "::1")]
-    assert not outside, f"listening beyond this machine: {outside}"
+    assert not beyond_this_machine(listeners), f"listening beyond this machine: {beyond_this_machine(listeners)}"
+
+
+def retarget_args(tmp_path: Path, job_main) -> list[str]:
+    """One Anny target x one 4-frame clip (the shipped model's topology: nothing to register)."""
+    run(job_main("export_meshes"), ["--stream", "notoes_collapse3pc", "--frames", "4", "--out", str(tmp_path / "walk")])
+    (tmp_path / "targets").mkdir()
+    shutil.copy(tmp_path / "walk" / "target.obj", tmp_path / "targets" / "anny.obj")
+    (tmp_path / "clips").mkdir()
+    shutil.move(tmp_path / "walk" / "driving", tmp_path / "clips" / "walk")
+    return ["--targets", str(tmp_path / "targets"), "--clips", str(tmp_path / "clips"), "--out", str(tmp_path / "lib"),
+            "--no-progress"]
+
+
+# One trial of one epoch on 16 streamed pairs: the sweep's Tune driver, trial actor and trainer, all on its own Ray.
+SWEEP = ["--config", str(ROOT / "configs" / "sweep_tiny.yaml"), *STREAM, "sweep.num_samples=1", "sweep.window=[2, 3]"]
+
+
+WORKER = {"sweep": "ray::RayTrainWorker", "retarget": "ray::Animator"}  # a trial's trainer; the model's actor
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("job", ["sweep", "retarget"])
+def test_the_sweep_and_retarget_jobs_local_ray_listen_on_localhost_only(job, tmp_path, job_main):
+    """jobs/sweep.py and jobs/retarget.py as a user runs them, each on its own local Ray: every socket of their
+    process trees while they ran. (evaluate and animate start no Ray and open no listening socket.)"""
+    args = [*SWEEP, "--out", str(tmp_path / "sweep")] if job == "sweep" else retarget_args(tmp_path, job_main)
+    listeners = job_listeners(job, args, tmp_path)
+    names = {name for _, _, name in listeners}
+    assert {"gcs_server", "raylet", WORKER[job]} <= names, listeners  # its own Ray and its workers were watched
+    assert not beyond_this_machine(listeners), f"listening beyond this machine: {beyond_this_machine(listeners)}"
 
 
 # ------------------------------------------------------------------------------ a Ray that cannot be reached
@@ -421,6 +462,26 @@ def test_a_local_ray_that_cannot_start_is_one_line_and_exit_2(tmp_path):
     assert done.stderr.strip().splitlines() == [
         f"error: a local Ray instance could not start: [Errno 20] Not a directory: '{env['RAY_TMPDIR']}'"]
     assert not (tmp_path / "out" / ".lock").exists()
+
+
+def test_a_local_ray_node_that_times_out_starting_is_one_line(monkeypatch):
+    """What ray.init raised under a load average of 35 (bench/soak.py): a bare Exception, before a traceback.
+    Its start-up timeout cannot be produced on demand, so ray.init raises it here."""
+    import ray
+
+    from aniformer.errors import UserError
+    from pipeline import cluster
+
+    def timed_out(**kwargs):
+        raise Exception("The current node timed out during startup. This could happen because some of the Ray "
+                        "processes failed to startup.")
+
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    monkeypatch.setenv(cluster.API_SERVER_ENV, os.environ.get(cluster.API_SERVER_ENV, ""))  # connect sets it: restored after
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", timed_out)
+    with pytest.raises(UserError, match="^a local Ray instance could not start: The current node timed out"):
+        cluster.connect()
 
 
 def test_a_ray_clusters_head_passes_the_probe(ray_address):
