@@ -132,7 +132,7 @@ def connect() -> str | None:
     try:
         context = ray.init(address="local", _node_ip_address=LOCALHOST, include_dashboard=True,
                            dashboard_host=LOCALHOST, dashboard_port=dashboard_port, log_to_driver=True)
-    except (ConnectionError, RuntimeError, OSError) as error:  # OSError: its temp dir (RAY_TMPDIR) unusable
+    except Exception as error:  # also OSError (RAY_TMPDIR unusable) and the bare Exception of a node start-up timeout
         raise UserError(f"a local Ray instance could not start: {root_line(error)}") from None
     node_ip = ray.util.get_node_ip_address()
     if node_ip != LOCALHOST:  # a Ray release that resolves the address another way: never listen outside

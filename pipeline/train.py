@@ -215,8 +215,8 @@ def train_func(loop_config: dict) -> None:
         if run.epoch:  # a restore (worker failure or a re-run job) is visible in the run's history
             tracker.log_metrics({"resumed_from_epoch": run.epoch}, step=run.epoch)
     if run.epoch and rank == 0 and console and console.epoch_lines:
-        show(f"resumed from the checkpoint of epoch {run.epoch}"
-             + (" after a worker group restart" if run.epoch > first_epoch else ""))
+        restarted = run.epoch > loop_config.get("resumed_epoch", first_epoch)  # beyond the driver's own resume point
+        show(f"resumed from the checkpoint of epoch {run.epoch}" + (" after a worker group restart" if restarted else ""))
     while run.epoch < cfg.epochs:
         started = time.perf_counter()
         bar = EpochBar(bool(console and console.progress and rank == 0), run.epoch + 1, cfg.epochs, steps,
@@ -259,7 +259,8 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
     quiet_ray_data()  # before the trainer: it captures the DataContext for its workers
     source = pair_source(spec.data, bank_dir)  # one bank load for every dataset
     run_name = ray_run_name(name)
-    first_epoch = min(resume_epoch(storage / run_name), cfg.epochs - 1)  # a finished run's re-run trains nothing
+    resumed_epoch = resume_epoch(storage / run_name)  # where the job's own restart (a rerun) picks up
+    first_epoch = min(resumed_epoch, cfg.epochs - 1)  # a finished run's re-run trains nothing
     datasets = {"train": pair_dataset(source, "train", epochs=cfg.epochs - first_epoch, first_epoch=first_epoch)}
     for split in EVAL_SPLITS:
         datasets[split] = pair_dataset(source, split)
@@ -273,6 +274,7 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
     return TorchTrainer(
         loop,
         train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": faces, "first_epoch": first_epoch,
+                           "resumed_epoch": resumed_epoch,
                            "console": console.to_dict() if console else None, **(loop_config or {})},
         torch_config=LoopbackTorchConfig(),  # the DDP store on 127.0.0.1-only when the workers are local
         scaling_config=ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
@@ -344,6 +346,9 @@ def train_job(spec: RunSpec, bank_dir: Path, out: Path, name: str, tracker: Trac
         result = fit(spec, bank_dir, out / "ray", name, tracker, faces, console)
     except ray.train.TrainingFailedError as e:  # Ray Train v2's fit() raises what a worker or the controller did
         raise UserError(training_failure(e)) from None
+    except ray.exceptions.RayActorError as e:  # the controller itself died (killed, its node lost)
+        raise UserError(f"training interrupted: Ray Train's controller died ({type(e).__name__}); the same command "
+                        f"resumes from the last checkpoint (logs: {ray_logs()})") from None
     if result.error:
         raise UserError(training_failure(result.error))
     for checkpoint, filename in ((best_checkpoint(result), "best.pt"), (result.checkpoint, "last.pt")):

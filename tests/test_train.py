@@ -229,6 +229,28 @@ def test_an_interrupted_job_ends_its_run_killed_and_a_rerun_resumes_it(tmp_path,
     assert sorted(resumed_epochs(out)) == sorted([after_sigint, after_sigterm]), (after_sigint, after_sigterm)
     assert 1 <= after_sigint <= after_sigterm < 3
     assert load_checkpoint(out / "last.pt")["epoch"] == 3
+    # the same command once more: nothing left to train, and no worker group restarted to say so
+    console = finish(start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=3"))
+    assert "resumed from the checkpoint of epoch 3\n" in console and "worker group restart" not in console, console[-3000:]
+
+
+def test_a_killed_training_controller_is_one_line_that_says_how_to_resume(tmp_path, tiny_bank, ray_address, repo_root):
+    """kill -9 of Ray Train's controller actor mid-run (a fault of bench/soak.py): the job exits 2 with one
+    line that says the same command resumes, not Ray's 40-line ActorDiedError traceback."""
+    from ray.util.state import list_actors
+
+    out = tmp_path / "controller"
+    job = start_job(repo_root, ray_address, out, tiny_bank, "train.epochs=20")
+    try:
+        wait_for_registered(out, job, 1)
+        (controller,) = list_actors(filters=[("class_name", "=", "TrainController"), ("state", "=", "ALIVE")])
+        os.kill(controller.pid, signal.SIGKILL)
+        console = finish(job, timeout=300, code=2)
+    finally:
+        stop(job)
+    assert "Traceback" not in console, console[-3000:]
+    assert console.splitlines()[-1].startswith("error: training interrupted: Ray Train's controller died"), console[-3000:]
+    assert "the same command resumes from the last checkpoint" in console.splitlines()[-1]
 
 
 def resumed_epochs(out: Path) -> list[float]:
