@@ -159,3 +159,46 @@ def model_predict(model):
             return model(*inputs).float().numpy()
 
     return predict
+
+
+CHROMEDRIVER = "/usr/bin/chromedriver"  # Debian's chromium-driver: the same build as its chromium
+
+
+@pytest.fixture
+def browser(tmp_path_factory):
+    """``browser(width, height)``: a fresh headless Chromium driven by Selenium WebDriver (Debian's chromium
+    and chromium-driver, which .ci/run installs), its viewport that size, its own profile; quit when the
+    test ends. Skips the test where either is missing."""
+    import shutil
+
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None or not os.access(CHROMEDRIVER, os.X_OK):
+        pytest.skip("no chromium or chromedriver (.ci/run installs Debian's chromium and chromium-driver)")
+    drivers = []
+
+    def start(width: int = 1600, height: int = 900):
+        options = webdriver.ChromeOptions()
+        options.binary_location = chromium
+        for arg in ("--headless=new", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-sync",
+                    "--disable-background-networking", "--disable-component-update", "--disable-breakpad",
+                    "--hide-scrollbars", f"--window-size={width},{height}",
+                    f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}"):
+            options.add_argument(arg)
+        if os.geteuid() == 0:
+            options.add_argument("--no-sandbox")  # Chromium's sandbox refuses to run as root
+        driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+        drivers.append(driver)
+        driver.set_page_load_timeout(120)
+        # the window is the viewport plus what the browser draws around it (143 px of height, headless)
+        extra_width, extra_height = driver.execute_script("return [outerWidth - innerWidth, outerHeight - innerHeight]")
+        if extra_width or extra_height:
+            driver.set_window_size(width + extra_width, height + extra_height)
+        assert driver.execute_script("return [innerWidth, innerHeight]") == [width, height]
+        return driver
+
+    yield start
+    for driver in drivers:
+        driver.quit()

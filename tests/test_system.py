@@ -15,9 +15,9 @@ One module-scoped cluster (the CI machine has 2 cores, so it is started once):
 Each test sets up what it needs through fixtures, so any one runs alone or in any order: what
 listens where, the token check, the tiny training job through `ray job submit` and a tiny sweep
 submitted as soon as the training job's mesh bank exists (both run at once, the `jobs` fixture), the
-MLflow UI in headless Chromium (the runs list; then the compare view of the sweep's trials, driven
-over the DevTools protocol as a user clicks through it, with the screenshot kept as docs/mlflow_ui.png
-when ANIFORMER_KEEP_SCREENSHOT names it), the server's backup on stop, and the local
+MLflow UI in headless Chromium driven by Selenium WebDriver (the `browser` fixture, Debian's chromium-driver:
+the runs list; then the compare view of the sweep's trials, clicked and typed through as a user would, with the
+screenshot kept as docs/mlflow_ui.png when ANIFORMER_KEEP_SCREENSHOT names it), the server's backup on stop, and the local
 Ray instance a job starts without a cluster. Everything is stopped through its own process group, never with `ray stop` (which
 would kill every Ray on the machine).
 """
@@ -41,13 +41,27 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from conftest import readline
+from selenium.common.exceptions import (
+    ElementClickInterceptedException,
+    ElementNotInteractableException,
+    NoSuchElementException,
+    StaleElementReferenceException,
+    WebDriverException,
+)
+from selenium.webdriver.common.action_chains import ActionChains
+from selenium.webdriver.common.by import By
+from selenium.webdriver.common.keys import Keys
+from selenium.webdriver.support import expected_conditions as EC
+from selenium.webdriver.support.ui import WebDriverWait
 
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+# the `browser` fixture (tests/conftest.py): Selenium WebDriver over Debian's chromium and chromium-driver
+NEEDS_BROWSER = pytest.mark.skipif(
+    not (shutil.which("chromium") or shutil.which("chromium-browser")) or not shutil.which("chromedriver"),
+    reason="no chromium or chromedriver (.ci/run installs Debian's chromium and chromium-driver)")
 OBJECT_STORE = str(256 * 1024**2)
 TRAIN = ["train.epochs=1", "data.workers=2"]  # 2 generation tasks: the machine has 2 cores
 # Up to two trials at once, spread over the nodes: a trial holds 0.05 + 0.5 CPU and its Ray Data reads
@@ -500,235 +514,192 @@ def test_sweep_job_submitted_to_the_cluster(cluster, jobs):
     assert parent["info"]["status"] == "FINISHED" and len(children) == TRIALS
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (.ci/run installs Debian's chromium)")
-def test_mlflow_ui_in_a_real_browser_shows_the_runs(cluster, jobs, tmp_path):
+@NEEDS_BROWSER
+def test_mlflow_ui_in_a_real_browser_shows_the_runs(cluster, jobs, browser, tmp_path):
     experiment, runs = mlflow_runs(cluster)
     names = {r["info"]["run_name"] for r in runs}
     assert {"tiny", "sweep"} <= names
-    profile = tmp_path / "profile"
-    profile.mkdir()
     shot = tmp_path / "mlflow_ui.png"
-    cmd = [CHROMIUM, "--headless", "--disable-gpu", "--disable-quic", "--no-first-run",
-           "--disable-background-networking", "--disable-component-update", "--disable-sync",
-           f"--user-data-dir={profile}", "--window-size=1600,900", "--hide-scrollbars",
-           "--virtual-time-budget=30000",  # the UI is a React app: let it fetch and render the runs
-           f"--screenshot={shot}", "--dump-dom", f"{cluster.mlflow}/#/experiments/{experiment}/runs"]
-    if os.geteuid() == 0:
-        cmd.insert(2, "--no-sandbox")  # Chromium's sandbox refuses to run as root
-    dom = ""
-    for _ in range(3):  # a loaded machine may render before the runs table has arrived
-        page = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-        dom = page.stdout
-        if "tiny" in dom and "sweep" in dom:
-            break
+    driver = browser(1600, 900)
+    driver.get(f"{cluster.mlflow}/#/experiments/{experiment}/runs")
+    # the UI is a React app: it fetches the runs, then draws them (slowly on a loaded machine)
+    for name in ("tiny", "sweep"):
+        WebDriverWait(driver, 120).until(EC.visibility_of_element_located((By.XPATH, f"//*[text()={_literal(name)}]")),
+                                         f"the run {name} in the runs list")
+    dom = driver.page_source
     assert ">tiny<" in dom and ">sweep<" in dom, dom[-3000:]
     assert "matching runs" in dom or "Run Name" in dom
+    driver.save_screenshot(shot)
     image = _png_stats(shot)
     assert image["width"] >= 1200 and image["height"] >= 800
     assert image["colours"] > 200 and 0.05 < image["ink"] < 0.95, image  # a rendered page, not a blank one
 
 
-# ------------------------------------------------------------------ a browser driven over the DevTools protocol
-
-
-class Tab:
-    """One headless Chromium tab driven over the DevTools protocol (CDP, a websocket; aiohttp comes
-    with ray[default]), as a user would: mouse clicks at elements' positions and typed text."""
-
-    def __init__(self, ws):
-        self.ws, self.ids = ws, iter(range(1, 10**9))
-
-    async def call(self, method: str, **params):
-        i = next(self.ids)
-        await self.ws.send_json({"id": i, "method": method, "params": params})
-        while True:  # events (no subscriptions, but some come anyway) are skipped
-            message = json.loads((await self.ws.receive()).data)
-            if message.get("id") == i:
-                assert "error" not in message, f"{method}: {message['error']}"
-                return message["result"]
-
-    async def js(self, expression: str):
-        result = await self.call("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True)
-        assert "exceptionDetails" not in result, f"{expression}: {result['exceptionDetails']}"
-        return result["result"].get("value")
-
-    async def wait(self, expression: str, what: str, timeout: float = 60):
-        import asyncio
-
-        deadline = time.time() + timeout
-        while not (value := await self.js(expression)):
-            assert time.time() < deadline, f"timed out waiting for {what}"
-            await asyncio.sleep(0.25)
-        return value
-
-    async def click(self, element: str, what: str, timeout: float = 60) -> None:
-        """Click the middle of `element` (a JS expression; null until it exists)."""
-        x, y = await self.wait(f"(() => {{ const e = {element}; if (!e || !e.getClientRects().length) return null; "
-                               "e.scrollIntoView({block: 'center'}); const r = e.getBoundingClientRect(); "
-                               "return [r.x + r.width / 2, r.y + r.height / 2]; })()", what, timeout)
-        for kind in ("mousePressed", "mouseReleased"):
-            await self.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
-
-    async def key(self, name: str, code: int, modifiers: int = 0, physical: str | None = None) -> None:
-        for kind in ("keyDown", "keyUp"):
-            await self.call("Input.dispatchKeyEvent", type=kind, key=name, code=physical or name,
-                            windowsVirtualKeyCode=code, modifiers=modifiers)
-
-    async def viewport(self, width: int, height: int) -> None:
-        await self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1,
-                        mobile=False)
-
-    async def screenshot(self, path: Path, height: int | None = None) -> None:
-        """The viewport as a PNG, or its top `height` pixels."""
-        import base64
-
-        clip = {}
-        if height is not None:
-            width = await self.js("window.innerWidth")
-            clip = {"clip": {"x": 0, "y": 0, "width": width, "height": height, "scale": 1}}
-        path.write_bytes(base64.b64decode((await self.call("Page.captureScreenshot", format="png", **clip))["data"]))
-
-
-def in_chromium(profile: Path, script, timeout: float = 240):
-    """Run `script(tab)` (a coroutine function) in a fresh headless Chromium; its result."""
-    import asyncio
-    import re
-    import urllib.request
-
-    import aiohttp
-
-    cmd = [CHROMIUM, "--headless", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-           "--disable-component-update", "--disable-sync", "--disable-breakpad", f"--user-data-dir={profile}",
-           "--hide-scrollbars", "--remote-debugging-port=0", "about:blank"]
-    if os.geteuid() == 0:
-        cmd.insert(2, "--no-sandbox")  # Chromium's sandbox refuses to run as root
-    browser = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        deadline, port = time.time() + 60, None
-        while port is None:  # "DevTools listening on ws://127.0.0.1:PORT/devtools/browser/..."
-            line = readline(browser.stderr, deadline - time.time(), "chromium's DevTools announcement")
-            assert line or browser.poll() is None, "chromium exited before it listened"
-            assert time.time() < deadline, "chromium did not start its DevTools server"
-            found = re.search(r"DevTools listening on ws://[^:]+:(\d+)/", line)
-            port = int(found.group(1)) if found else None
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=30) as r:
-            (page,) = [t for t in json.loads(r.read()) if t["type"] == "page"]
-
-        async def session():
-            async with aiohttp.ClientSession() as client, client.ws_connect(page["webSocketDebuggerUrl"],
-                                                                             max_msg_size=0) as ws:
-                return await script(Tab(ws))
-
-        return asyncio.run(asyncio.wait_for(session(), timeout))
-    finally:
-        kill_group(browser.pid)
-        browser.wait(timeout=30)
-
+# ------------------------------------------------------------------ the compare view, clicked through with Selenium
 
 SWEPT = ["loss.rec", "loss.motion", "loss.appearance", "data.window"]  # the sweep's searched params (tune.PARAMS)
+# what a click or a wait may meet while the UI re-renders: the wait tries again
+FLAKY = (StaleElementReferenceException, ElementClickInterceptedException, ElementNotInteractableException,
+         NoSuchElementException)
 
 
-def _select(field: str) -> str:
-    """The multiple-choice select after the label `field` ("Parameters:", "Metrics:") of the
-    parallel-coordinates controls."""
-    return (f"[...document.querySelectorAll('div')].find(d => d.textContent === {json.dumps(field)})"
-            ".nextElementSibling")
+def _literal(text: str) -> str:
+    """`text` as an XPath string literal."""
+    assert '"' not in text, text
+    return f'"{text}"'
 
 
-async def _choose(tab: Tab, field: str, keys: list[str]) -> list[str]:
-    """Pick `keys` in a multiple-choice select: open it (its arrow, away from the chosen tags and
-    their remove buttons), type the key, click the option that matches it exactly."""
-    select = _select(field)
-    box = f"{select}.querySelector('input')"
-    options = "[...document.querySelectorAll('.du-bois-light-select-item-option')].filter(o => o.offsetParent)"
-    chosen = f"[...{select}.querySelectorAll('.du-bois-light-select-selection-item-content')].map(e => e.textContent)"
+def _has_class(name: str) -> str:
+    """An XPath predicate: the element has the class `name`."""
+    return f"contains(concat(' ', normalize-space(@class), ' '), ' {name} ')"
+
+
+def _shown(driver, xpath: str) -> list:
+    """The displayed elements that `xpath` finds."""
+    return [e for e in driver.find_elements(By.XPATH, xpath) if e.is_displayed()]
+
+
+def _click(driver, xpath: str, what: str, timeout: float = 60) -> None:
+    """Click, as a user does, the first displayed element `xpath` finds, once there is one: scroll it into
+    view with the wheel, move the mouse to its middle and press there. (Not `WebElement.click()`: that
+    refuses when the element at that point is another, as under a select's arrow, which lets clicks
+    through to the select.)"""
+
+    def clicked(d) -> bool:
+        shown = _shown(d, xpath)
+        if shown:
+            ActionChains(d).scroll_to_element(shown[0]).move_to_element(shown[0]).click().perform()
+        return bool(shown)
+
+    WebDriverWait(driver, timeout, ignored_exceptions=FLAKY).until(clicked, f"{what} to click")
+
+
+def _keys(driver, *keys: str, hold: str | None = None) -> None:
+    """Type `keys` into whatever has the focus (the keyboard), holding `hold` (a modifier) down."""
+    actions = ActionChains(driver)
+    if hold:
+        actions.key_down(hold)
+    actions.send_keys(*keys)
+    if hold:
+        actions.key_up(hold)
+    actions.perform()
+
+
+def _text(driver) -> str:
+    return driver.execute_script("return document.body ? document.body.innerText : ''")
+
+
+def _choose(driver, field: str, keys: list[str]) -> list[str]:
+    """Pick `keys` in the multiple-choice select after the label `field` ("Parameters:", "Metrics:") of the
+    parallel-coordinates controls: open it (its arrow, away from the chosen tags and their remove buttons),
+    type the key, click the option that matches it exactly."""
+    select = f"//div[.={_literal(field)}]/following-sibling::*[1]"
+    options = f"//*[{_has_class('du-bois-light-select-item-option')}]"
+
+    def box(d):
+        return d.find_element(By.XPATH, f"{select}//input")
+
+    def chosen(d) -> list[str]:
+        return [e.get_property("textContent") for e in
+                d.find_elements(By.XPATH, f"{select}//*[{_has_class('du-bois-light-select-selection-item-content')}]")]
+
+    def wait(condition, what: str):
+        return WebDriverWait(driver, 10, ignored_exceptions=FLAKY).until(condition, what)
+
     for key in keys:
         for attempt in range(3):  # a click or keys landing while the UI re-renders: try again
             try:
-                await tab.wait(f"!{options}.length", "no dropdown open", timeout=10)
-                await tab.click(f"{select}.querySelector('.du-bois-light-select-arrow')", f"the {field} arrow")
-                await tab.wait(f"document.activeElement === {box}", f"focus on the {field} box", timeout=10)
-                if await tab.js(f"{box}.value"):  # what was typed for the last one may still be there
-                    await tab.key("a", 65, modifiers=2, physical="KeyA")  # ctrl+A
-                    await tab.key("Backspace", 8)
-                    await tab.wait(f"{box}.value === ''", f"an empty {field} box", timeout=10)
-                await tab.call("Input.insertText", text=key)
-                await tab.click(f"{options}.find(o => o.textContent === {json.dumps(key)})", f"option {key}", timeout=10)
-                await tab.wait(f"{chosen}.includes({json.dumps(key)})", f"{key} chosen", timeout=10)
+                wait(lambda d: not _shown(d, options), "no dropdown open")
+                _click(driver, f"{select}//*[{_has_class('du-bois-light-select-arrow')}]", f"the {field} arrow", timeout=10)
+                wait(lambda d: d.switch_to.active_element == box(d), f"focus on the {field} box")
+                if box(driver).get_property("value"):  # what was typed for the last one may still be there
+                    _keys(driver, "a", hold=Keys.CONTROL)
+                    _keys(driver, Keys.BACKSPACE)
+                    wait(lambda d: box(d).get_property("value") == "", f"an empty {field} box")
+                _keys(driver, key)
+                _click(driver, f"{options}[.={_literal(key)}]", f"option {key}", timeout=10)
+                wait(lambda d, key=key: key in chosen(d), f"{key} chosen")
                 break
-            except AssertionError as e:
-                state = await tab.js(f"[{box}.value, {chosen}, {options}.map(o => o.textContent).slice(0, 10)]")
+            except WebDriverException as e:
                 if attempt == 2:
-                    raise AssertionError(f"{field} {key}: {e} (typed, chosen, options shown: {state})") from None
+                    state = [box(driver).get_property("value"), chosen(driver),
+                             [o.get_property("textContent") for o in _shown(driver, options)][:10]]
+                    raise AssertionError(f"{field} {key}: {e.msg} (typed, chosen, options shown: {state})") from None
             finally:
-                await tab.key("Escape", 27)
-    return await tab.js(chosen)
+                _keys(driver, Keys.ESCAPE)
+    return chosen(driver)
 
 
-async def _pick(tab: Tab, select_id: str, key: str) -> None:
+def _pick(driver, select_id: str, key: str) -> None:
     """Choose `key` in the single-choice select (a button that opens a list of options) `select_id`."""
-    button = f"document.getElementById('{select_id}')"
-    listed = "[...document.querySelectorAll('[role=option]')].filter(o => o.offsetParent)"
+    button = f"//*[@id={_literal(select_id)}]"
+    listed = "//*[@role='option']"
     for attempt in range(3):
         try:
-            await tab.wait(f"!{listed}.length", "no list open", timeout=10)
-            await tab.click(button, select_id, timeout=10)
-            await tab.click(f"{listed}.find(o => o.textContent === {json.dumps(key)})", f"option {key}", timeout=10)
-            await tab.wait(f"{button}.textContent === {json.dumps(key)}", f"{key} in {select_id}", timeout=10)
+            WebDriverWait(driver, 10, ignored_exceptions=FLAKY).until(lambda d: not _shown(d, listed), "no list open")
+            _click(driver, button, select_id, timeout=10)
+            _click(driver, f"{listed}[.={_literal(key)}]", f"option {key}", timeout=10)
+            WebDriverWait(driver, 10, ignored_exceptions=FLAKY).until(
+                lambda d: d.find_element(By.XPATH, button).get_property("textContent") == key, f"{key} in {select_id}")
             return
-        except AssertionError as e:
+        except WebDriverException as e:
             if attempt == 2:
-                shown = await tab.js(f"[{button}.textContent, {listed}.map(o => o.textContent).slice(0, 10)]")
-                raise AssertionError(f"{select_id} {key}: {e} (shown, options: {shown})") from None
-            if await tab.js(f"{listed}.length"):
-                await tab.key("Escape", 27)
+                shown = [driver.find_element(By.XPATH, button).get_property("textContent"),
+                         [o.get_property("textContent") for o in _shown(driver, listed)][:10]]
+                raise AssertionError(f"{select_id} {key}: {e.msg} (shown, options: {shown})") from None
+            if _shown(driver, listed):
+                _keys(driver, Keys.ESCAPE)
 
 
-async def _compare_view(tab: Tab, url: str, names: list[str], shot: Path) -> dict:
+def _compare_view(driver, url: str, names: list[str], shot: Path) -> dict:
     """Open the compare view of a sweep's trials; plot the swept params and pmd_unseen in parallel
     coordinates (screenshot with the params that differ), then each swept param against pmd_unseen
     in the scatter plot. What the page showed."""
+    import io
+
+    from PIL import Image  # matplotlib's dependency
+
     seen = {}
-    # Tall enough that nothing scrolls (the page scrolls inside its own panel; resizing later can
-    # re-mount the plot's controls, losing what was chosen): the screenshot is the top of it.
-    await tab.viewport(1600, 3000)
-    await tab.call("Page.navigate", url=url)
-    await tab.wait("document.body && document.body.innerText.includes('Parallel Coordinates Plot') && "
-                   + " && ".join(f"document.body.innerText.includes({json.dumps(n)})" for n in names),
-                   "the compare view of the trials")
-    close = "document.querySelector('[data-component-id=\"mlflow.assistant.chat_panel.close\"]')"
-    if await tab.js(f"!!{close}"):  # MLflow 3's assistant panel takes a third of the width
-        await tab.click(close, "the assistant's close button")
-    await tab.click("[...document.querySelectorAll('button')].find(b => b.textContent === 'Clear All')", "Clear All")
-    seen["params"] = await _choose(tab, "Parameters:", SWEPT)
-    seen["metrics"] = await _choose(tab, "Metrics:", ["pmd_unseen"])
+    driver.get(url)
+    WebDriverWait(driver, 60).until(lambda d: all(s in _text(d) for s in ["Parallel Coordinates Plot", *names]),
+                                    "the compare view of the trials")
+    close = "//*[@data-component-id='mlflow.assistant.chat_panel.close']"
+    if _shown(driver, close):  # MLflow 3's assistant panel takes a third of the width
+        _click(driver, close, "the assistant's close button")
+    _click(driver, "//button[.='Clear All']", "Clear All")
+    seen["params"] = _choose(driver, "Parameters:", SWEPT)
+    seen["metrics"] = _choose(driver, "Metrics:", ["pmd_unseen"])
     plot = "document.querySelector('[id$=content-parallel-coordinates-plot] .js-plotly-plot')"
-    await tab.wait(f"{plot} && {plot}.data && {plot}.data[0].dimensions.length === 5",
-                   f"the 5 axes (chosen: {seen['params']}, {seen['metrics']})")
-    seen["axes"] = await tab.js(f"{plot}.data[0].dimensions.map(d => [d.label, d.values])")
-    seen["axis_titles"] = await tab.js("[...document.querySelectorAll('.parcoords .axis-title')].map(e => e.textContent)")
-    diff = "document.querySelector('button[aria-label=\"Parameters - Show diff only\"]')"
-    await tab.click(diff, "Parameters: show diff only")
-    await tab.wait(f"{diff}.getAttribute('aria-checked') === 'true'", "only the params that differ")
-    await tab.js("[...document.querySelectorAll('*')].forEach(e => { if (e.scrollTop) e.scrollTop = 0; })")
-    bottom = await tab.js(f"{diff}.closest('.du-bois-light-collapse-content-box').querySelector('table')"
-                          ".getBoundingClientRect().bottom")
-    seen["text"] = await tab.js("document.body.innerText")
-    await tab.screenshot(shot, height=int(bottom) + 24)  # from the top to the end of those params
-    await tab.click("[...document.querySelectorAll('[role=tab]')].find(b => b.textContent === 'Scatter Plot')",
-                    "the Scatter Plot tab")
+    WebDriverWait(driver, 60).until(
+        lambda d: d.execute_script(f"const p = {plot}; return !!(p && p.data && p.data[0].dimensions.length === 5)"),
+        f"the 5 axes (chosen: {seen['params']}, {seen['metrics']})")
+    seen["axes"] = driver.execute_script(f"return {plot}.data[0].dimensions.map(d => [d.label, d.values])")
+    seen["axis_titles"] = [e.get_property("textContent")
+                           for e in driver.find_elements(By.CSS_SELECTOR, ".parcoords .axis-title")]
+    diff = "//button[@aria-label='Parameters - Show diff only']"
+    _click(driver, diff, "Parameters: show diff only")
+    WebDriverWait(driver, 60, ignored_exceptions=FLAKY).until(
+        lambda d: d.find_element(By.XPATH, diff).get_attribute("aria-checked") == "true", "only the params that differ")
+    driver.execute_script("[...document.querySelectorAll('*')].forEach(e => { if (e.scrollTop) e.scrollTop = 0; })")
+    table = driver.find_element(By.XPATH, f"{diff}/ancestor::*[{_has_class('du-bois-light-collapse-content-box')}][1]//table")
+    bottom = table.rect["y"] + table.rect["height"]
+    seen["text"] = _text(driver)
+    with Image.open(io.BytesIO(driver.get_screenshot_as_png())) as page:  # from the top to the end of those params
+        page.crop((0, 0, page.width, min(page.height, int(bottom) + 24))).save(shot)
+    _click(driver, "//*[@role='tab'][.='Scatter Plot']", "the Scatter Plot tab")
     scatter = "document.querySelector('[id$=content-scatter-plot] .js-plotly-plot')"
     seen["scatter"] = {}
     for param in SWEPT:
         for axis, key in (("x", param), ("y", "pmd_unseen")):
-            await _pick(tab, f"{axis}-axis-selector", key)
-        seen["scatter"][param] = await tab.js(f"(() => {{ const t = {scatter}.data[0]; return {{x: t.x, y: t.y, "
-                                              "names: t.text.map(s => s.split('</b>')[0].replace('<b>', ''))}; })()")
+            _pick(driver, f"{axis}-axis-selector", key)
+        seen["scatter"][param] = driver.execute_script(
+            f"const t = {scatter}.data[0]; "
+            "return {x: t.x, y: t.y, names: t.text.map(s => s.split('</b>')[0].replace('<b>', ''))};")
     return seen
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (.ci/run installs Debian's chromium)")
-def test_mlflow_compare_view_shows_the_sweeps_trials_in_a_real_browser(cluster, jobs, tmp_path):
+@NEEDS_BROWSER
+def test_mlflow_compare_view_shows_the_sweeps_trials_in_a_real_browser(cluster, jobs, browser, tmp_path):
     """The compare view of the sweep's children (the link `pipeline.sweep_table.compare_link` prints), as a user
     reaches it: parallel coordinates over lambda_rec, lambda_m, lambda_a, T and pmd_unseen, the scatter of
     each against pmd_unseen; the values drawn are the runs' own. Screenshot: ANIFORMER_KEEP_SCREENSHOT
@@ -745,10 +716,10 @@ def test_mlflow_compare_view_shows_the_sweeps_trials_in_a_real_browser(cluster, 
     names = [r["info"]["run_name"] for r in children]
     url = compare_url(cluster.mlflow, experiment, [r["info"]["run_id"] for r in children])
     shot = tmp_path / "mlflow_compare.png"
-    profile = tmp_path / "profile"
-    profile.mkdir()
     started = time.time()
-    seen = in_chromium(profile, lambda tab: _compare_view(tab, url, names, shot))
+    # Tall enough that nothing scrolls (the page scrolls inside its own panel; resizing later can
+    # re-mount the plot's controls, losing what was chosen): the screenshot is the top of it.
+    seen = _compare_view(browser(1600, 3000), url, names, shot)
     print(f"compare view driven in {time.time() - started:.1f} s")
 
     assert seen["params"] == SWEPT and seen["metrics"] == ["pmd_unseen"], seen
@@ -813,7 +784,7 @@ def _running(pid: int) -> bool:
         return False
 
 
-def test_jobs_without_a_cluster_start_a_local_ray_on_localhost_with_token_auth(tmp_path):
+def test_jobs_without_a_cluster_start_a_local_ray_on_localhost_with_token_auth(tmp_path, read_line):
     """jobs/*.py without RAY_ADDRESS call pipeline.cluster.connect(): a private local Ray instance."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
     env["RAY_TMPDIR"] = tempfile.mkdtemp(prefix="ray", dir="/tmp")
@@ -828,7 +799,7 @@ def test_jobs_without_a_cluster_start_a_local_ray_on_localhost_with_token_auth(t
     proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, env=env, stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, start_new_session=True)
     try:
-        info = json.loads(readline(proc.stdout, 180, "the local Ray driver (its dashboard address)") or "null")
+        info = json.loads(read_line(proc.stdout, 180, "the local Ray driver (its dashboard address)") or "null")
         assert info, "the local Ray driver exited before it printed its dashboard address"
         port = int(info["dashboard"].rsplit(":", 1)[1])
         assert addresses(port, tree_pids(proc.pid)) == {"127.0.0.1"}
