@@ -58,6 +58,7 @@ COARSE_LR = 0.03  # measured: 0.06 sends rest-pose bodies to wrong basins (6-9 c
 NORMAL_WEIGHT = 0.05  # metres per unit of normal difference in the Chamfer matches: opposite normals cost 10 cm
 PREFIT_STEPS = 100  # of the pose seeds pulled to their geodesic partners alone, before any Chamfer step
 PREFIT_LR = 0.05
+NEIGHBOURS_EVERY = 2  # Chamfer steps per nearest-neighbour search (the searches were half the fit's time)
 POSE_PRIOR = 1e-4  # per rad^2 of bone rotation: keeps unconstrained bones (fingers, face) at rest
 
 
@@ -192,14 +193,21 @@ class _Cloud:
         return _Cloud.of(self.points.numpy()[index], self.oriented[index, 3:] / NORMAL_WEIGHT)
 
 
-def _chamfer(a: torch.Tensor, a_normals: np.ndarray, b: _Cloud) -> torch.Tensor:
-    """Symmetric squared Chamfer distance per batch row between ``a (B, N, 3)`` (normals ``(B, N, 3)``)
-    and a cloud -> ``(B,)``. Nearest neighbours come from k-d trees of points and normals (a point
-    matches a point of the surface facing its way: a front is not fitted onto a back), then only the
-    distances to them are differentiated (a dense distance matrix costs ~1 s per step)."""
+def _nearest(a: torch.Tensor, a_normals: np.ndarray, b: _Cloud) -> tuple[torch.Tensor, torch.Tensor]:
+    """(each point of ``a (B, N, 3)``'s nearest in the cloud ``(B, N)``, each cloud point's nearest in ``a``
+    ``(B, M)``), matched by k-d trees of points and normals (``normals (B, N, 3)``): a point matches a
+    point of the surface facing its way, so a front is not fitted onto a back."""
     oriented = np.concatenate([a.detach().numpy(), NORMAL_WEIGHT * a_normals], -1)
-    nearest_b = torch.from_numpy(np.stack([b.tree.query(p)[1] for p in oriented]))  # (B, N)
-    nearest_a = torch.from_numpy(np.stack([scipy.spatial.cKDTree(p).query(b.oriented)[1] for p in oriented]))  # (B, M)
+    nearest_b = torch.from_numpy(np.stack([b.tree.query(p)[1] for p in oriented]))
+    nearest_a = torch.from_numpy(np.stack([scipy.spatial.cKDTree(p).query(b.oriented)[1] for p in oriented]))
+    return nearest_b, nearest_a
+
+
+def _chamfer(a: torch.Tensor, b: _Cloud, nearest: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """Symmetric squared Chamfer distance per batch row between ``a (B, N, 3)`` and a cloud -> ``(B,)``,
+    over the ``_nearest`` pairs: only the distances are differentiated (a dense distance matrix costs
+    ~1 s per step)."""
+    nearest_b, nearest_a = nearest
     to_b = (a - b.points[nearest_b]).square().sum(-1).mean(1)
     to_a = (b.points[None] - torch.gather(a, 1, nearest_a[..., None].expand(-1, -1, 3))).square().sum(-1).mean(1)
     return to_b + to_a
@@ -265,11 +273,16 @@ def _fit_body(template: _Template, cloud: _Cloud, start: list[torch.Tensor], ste
     (the parameters, the posed vertices, the Chamfer loss per row: what hypotheses are compared by)."""
     phenotype, rotvecs, shift = params = [p.detach().clone().requires_grad_(True) for p in start]
     optimiser = torch.optim.Adam(params, lr=lr)
-    for _ in range(steps):
+    for step in range(steps):
         posed = template.vertices(torch.sigmoid(phenotype), rotvecs)
         posed = posed - (posed.amin(1, keepdim=True) + posed.amax(1, keepdim=True)) / 2 + shift
         prior = POSE_PRIOR * rotvecs[:, 1:].square().sum((1, 2))
-        fit = prior if cloud is None else _chamfer(*template.samples(posed), cloud) + prior
+        fit = prior
+        if cloud is not None:
+            points, point_normals = template.samples(posed)
+            if step % NEIGHBOURS_EVERY == 0 or step == steps - 1:  # the last step's loss ranks the hypotheses
+                nearest = _nearest(points, point_normals, cloud)
+            fit = fit + _chamfer(points, cloud, nearest)
         apart = (posed - partners).square().sum(-1)
         pulled = weights * PARTNER_SCALE**2 * (apart / (apart + PARTNER_SCALE**2)).mean(1)
         optimiser.zero_grad()
@@ -360,7 +373,10 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
     with torch.enable_grad(), one_thread():
         # posed bodies: the skeleton bent onto the partners first (cheap: no nearest-neighbour search), so the
         # Chamfer round starts in the right basin (posed validation bodies: 7.5 -> 2.1 cm mean error)
-        start, _, _ = _fit_bodies(coarse, None, start, PREFIT_STEPS, partners[side], weights, lr=PREFIT_LR)
+        posed_rows = len(seeds) * len(SIDES)  # the orientation rows have no partners to be pulled to
+        prefit, _, _ = _fit_bodies(coarse, None, [p[:posed_rows] for p in start], PREFIT_STEPS,
+                                   partners[side[:posed_rows]], weights[:posed_rows], lr=PREFIT_LR)
+        start = [torch.cat([fitted, p[posed_rows:]]) for fitted, p in zip(prefit, start)]
         params, _, loss = _fit_bodies(coarse, coarse_cloud, start, steps[0],
                                     partners[side], PARTNER_WEIGHT[0] * weights, lr=COARSE_LR)
         kept = loss.argsort()[:KEEP]
@@ -375,7 +391,8 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
         optimiser = torch.optim.Adam([offsets], lr=2e-3)
         for _ in range(steps[2]):  # small smooth offsets: what the body model's shape space misses
             smooth = (offsets[:, i] - offsets[:, j]).square().sum(-1).mean()
-            fit = _chamfer(*template.samples(posed + offsets), cloud)
+            points, point_normals = template.samples(posed + offsets)
+            fit = _chamfer(points, cloud, _nearest(points, point_normals, cloud))
             optimiser.zero_grad()
             (fit + 10.0 * smooth).backward()
             optimiser.step()
