@@ -27,6 +27,7 @@ TorchTrainer resumes from its last checkpoint under `OUT/trials/<sweep>-<trial_i
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import os
 from pathlib import Path
@@ -233,7 +234,28 @@ class SweepRuns(Callback):
         self._end(trial, None)
 
     def on_trial_error(self, iteration, trials, trial, **info):
+        print(f"sweep: trial {trial.trial_id} failed: {error_line(trial.error_file)}", flush=True)
         self._end(trial, trial.error_file or "error")
+
+
+def error_line(error_file: str | None) -> str:
+    """A failed trial's exception in one line (the last line of the traceback Tune saved), and where the
+    whole traceback is."""
+    try:
+        lines = [line.strip() for line in Path(error_file).read_text(errors="replace").splitlines() if line.strip()]
+    except (OSError, TypeError):
+        return f"see {error_file}" if error_file else "no error file"
+    return f"{lines[-1][:300] if lines else 'an empty error file'} (traceback: {error_file})"
+
+
+class _NoTrialTracebacks(logging.Filter):
+    """Drops Tune's "Trial task failed for trial ..." traceback: ``SweepRuns`` says it in one line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith("Trial task failed for trial")
+
+
+logging.getLogger("ray.tune.execution.tune_controller").addFilter(_NoTrialTracebacks())
 
 
 def build_tuner(base: dict, sweep: SweepConfig, *, sweep_name: str, out: Path, bank: Path, experiment: str,

@@ -105,8 +105,10 @@ def test_interrupted_trials_runs_are_ended_even_before_their_first_report(tmp_pa
     assert start_job_run("sw-a0001", {}).run_id == started.run_id  # the restored trial reopens it
 
 
-def test_a_trial_failing_before_its_first_report_ends_its_run_failed(tmp_path, monkeypatch):
-    """The driver callback finds a trial's run by job name, not from its (absent) results."""
+def test_a_trial_failing_before_its_first_report_ends_its_run_failed(tmp_path, monkeypatch, capsys):
+    """The driver callback finds a trial's run by job name, not from its (absent) results, and says why the
+    trial failed in one line (Tune's own traceback of it is dropped)."""
+    import logging
     from types import SimpleNamespace
 
     from pipeline.tracking import start_job_run
@@ -115,9 +117,17 @@ def test_a_trial_failing_before_its_first_report_ends_its_run_failed(tmp_path, m
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     run = start_job_run("sw-a0001", {})
     callback = SweepRuns(epochs=2, sweep_name="sw", trials_dir=str(tmp_path / "trials"), experiment="aniformer")
-    callback.on_trial_error(0, [], SimpleNamespace(trial_id="a0001", last_result=None, error_file="error.txt"))
+    error_file = tmp_path / "error.txt"
+    error_file.write_text("Traceback (most recent call last):\n  File \"x.py\", line 1, in <module>\n"
+                          "ray.exceptions.ActorDiedError: The actor died unexpectedly before finishing this task.\n")
+    callback.on_trial_error(0, [], SimpleNamespace(trial_id="a0001", last_result=None, error_file=str(error_file)))
     ended = run.client.get_run(run.run_id)
     assert ended.info.status == "FAILED" and ended.data.tags["status"] == "failed"
+    assert capsys.readouterr().out == ("sweep: trial a0001 failed: ray.exceptions.ActorDiedError: The actor died "
+                                       f"unexpectedly before finishing this task. (traceback: {error_file})\n")
+    tune_controller = logging.getLogger("ray.tune.execution.tune_controller")
+    assert not tune_controller.filter(logging.makeLogRecord({"msg": "Trial task failed for trial run_trial_34d92aa3"}))
+    assert tune_controller.filter(logging.makeLogRecord({"msg": "Trying to restore the experiment"}))
     callback.on_trial_error(0, [], SimpleNamespace(trial_id="a0002", last_result=None, error_file="error.txt"))  # no run
 
 
