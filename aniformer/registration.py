@@ -58,7 +58,7 @@ COARSE_LR = 0.03  # measured: 0.06 sends rest-pose bodies to wrong basins (6-9 c
 NORMAL_WEIGHT = 0.05  # metres per unit of normal difference in the Chamfer matches: opposite normals cost 10 cm
 PREFIT_STEPS = 100  # of the pose seeds pulled to their geodesic partners alone, before any Chamfer step
 PREFIT_LR = 0.05
-NEIGHBOURS_EVERY = 2  # Chamfer steps per nearest-neighbour search (the searches were half the fit's time)
+NEIGHBOURS_EVERY = 2  # Chamfer steps per nearest-neighbour search (the searches were a third of the fit's time)
 POSE_PRIOR = 1e-4  # per rad^2 of bone rotation: keeps unconstrained bones (fingers, face) at rest
 
 

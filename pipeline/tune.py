@@ -241,10 +241,12 @@ class SweepRuns(Callback):
 def error_line(error_file: str | None) -> str:
     """A failed trial's exception in one line (the last line of the traceback Tune saved), and where the
     whole traceback is."""
+    if not error_file:
+        return "no error file"
     try:
         lines = [line.strip() for line in Path(error_file).read_text(errors="replace").splitlines() if line.strip()]
-    except (OSError, TypeError):
-        return f"see {error_file}" if error_file else "no error file"
+    except OSError:
+        return f"see {error_file}"
     return f"{lines[-1][:300] if lines else 'an empty error file'} (traceback: {error_file})"
 
 
