@@ -11,26 +11,47 @@ must leave it as they found it. ``ray_address`` gives the address for subprocess
 from __future__ import annotations
 
 import os
-import sys
 import types
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run from a checkout without `pip install -e .`
-    sys.path.insert(0, str(ROOT))
-
-NODE_CPUS = 1
-OBJECT_STORE_BYTES = 512 * 1024**2
+NODE = {"num_cpus": 1, "object_store_memory": 512 * 1024**2}  # each node of `ray_cluster`
 
 
-def _free_port() -> int:
+def pick_free_ports(n: int) -> list[int]:
+    """n distinct free TCP ports between Ray's worker ports (10002-19999) and the kernel's ephemeral range:
+    a port handed out by `bind(0)` could be taken by any process binding port 0 (Ray's gRPC servers and
+    workers do) before the test's server binds it."""
+    import random
     import socket
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    chosen = []
+    for port in random.sample(range(20000, low), min(4 * n + 50, low - 20000)):  # distinct candidates
+        with socket.socket() as s:
+            try:
+                s.bind(("", port))  # every address: free on 127.0.0.1 and for a server binding 0.0.0.0
+            except OSError:
+                continue
+        chosen.append(port)
+        if len(chosen) == n:
+            return chosen
+    raise RuntimeError(f"could not find {n} free ports")
+
+
+@pytest.fixture(scope="session")
+def free_ports():
+    """``free_ports(n)``: n distinct TCP ports that nothing listens on, outside Ray's worker ports and the
+    ephemeral range, for servers a test starts (or a port that must refuse connections)."""
+    return pick_free_ports
+
+
+@pytest.fixture(scope="session")
+def node_args() -> dict:
+    """What each node of ``ray_cluster`` is started with: ``ray_cluster.add_node(**node_args)`` adds one back."""
+    return dict(NODE)
 
 
 @pytest.fixture(scope="session")
@@ -40,25 +61,24 @@ def ray_cluster():
     from ray.cluster_utils import Cluster
 
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
-    dashboard_port = _free_port()  # 8265 may belong to another Ray on this machine
+    dashboard_port, agent_port = pick_free_ports(2)  # 8265 may belong to another Ray on this machine
     # Ray Train's placement-group cleaner looks its cluster up with no address: without this it may ask
     # another Ray on the machine and remove a live training's placement group (pipeline/cluster.py).
     os.environ["RAY_API_SERVER_ADDRESS"] = f"http://127.0.0.1:{dashboard_port}"
     cluster = Cluster(
         initialize_head=True,
         head_node_args={
-            "num_cpus": NODE_CPUS,
-            "object_store_memory": OBJECT_STORE_BYTES,
+            **NODE,
             # Ray Train's controller wants the dashboard; bind it to localhost only.
             "include_dashboard": True,
             "dashboard_host": "127.0.0.1",
             "dashboard_port": dashboard_port,
             # The head's dashboard agent defaults to 52365; a second head on this machine (the job
             # submission tests' `ray start --head`) would lose its agent and refuse every job.
-            "dashboard_agent_listen_port": _free_port(),
+            "dashboard_agent_listen_port": agent_port,
         },
     )
-    cluster.add_node(num_cpus=NODE_CPUS, object_store_memory=OBJECT_STORE_BYTES)
+    cluster.add_node(**NODE)
     cluster.wait_for_nodes()
     ray.init(address=cluster.address)
     try:
@@ -92,6 +112,23 @@ def job_main():
         job = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(job)
         return job.main
+
+    return load
+
+
+@pytest.fixture(scope="session")
+def bench_module():
+    """`bench_module("model_bench")`: bench/model_bench.py as a module, loaded once per session by its path
+    (bench/ is scripts, not a package: nothing is added to sys.path for the tests after it)."""
+    import functools
+    import importlib.util
+
+    @functools.cache
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
 
     return load
 

@@ -219,14 +219,9 @@ def fresh_probe(monkeypatch):
     monkeypatch.setattr(tracking, "_READY", set())
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def test_a_tracking_server_that_refuses_connections_fails_in_one_line(tmp_path, monkeypatch, fresh_probe, capsys):
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://127.0.0.1:{free_port()}")
+def test_a_tracking_server_that_refuses_connections_fails_in_one_line(tmp_path, monkeypatch, fresh_probe, capsys,
+                                                                       free_ports):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://127.0.0.1:{free_ports(1)[0]}")
     start = time.perf_counter()
     err = one_line_error(capsys, lambda argv: tracking.resolve_checkpoint("0123456789abcdef" * 2, tmp_path))
     assert "does not answer ([Errno 111] Connection refused)" in err

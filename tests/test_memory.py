@@ -3,9 +3,6 @@ against measured peak RSS of real training steps, and the batch gate."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
@@ -13,7 +10,6 @@ from aniformer.baselines import build_model
 from aniformer.losses import LossConfig, loss_terms
 from aniformer.memory import count_activations, parameter_count, plan_batch, predict_step_memory
 
-ROOT = Path(__file__).resolve().parents[1]
 TINY = {"channels": [64, 32], "extractor_channels": [16, 64], "heads": 8}
 
 
@@ -111,9 +107,6 @@ def test_gate_keeps_adjusts_or_skips():
     assert plan_batch("aniformer", paper, batch=64, limit_gb=None, **kw).status == "ok"
 
 
-sys.path.insert(0, str(ROOT / "bench"))
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("model,V,B,checkpointed", [
     ({"channels": [64, 64, 64, 32], "extractor_channels": [16, 32, 64], "window": 3}, 369, 4, False),
@@ -122,15 +115,14 @@ sys.path.insert(0, str(ROOT / "bench"))
     ({"channels": [128, 128, 128, 64], "extractor_channels": [32, 64, 128], "window": 5}, 615, 2, False),
     ({"channels": [128, 128, 128, 64], "extractor_channels": [32, 64, 128], "window": 5}, 615, 4, True),
 ])
-def test_prediction_within_25_percent_of_measured_peak_rss(model, V, B, checkpointed):
+def test_prediction_within_25_percent_of_measured_peak_rss(model, V, B, checkpointed, bench_module):
     """Peak RSS of real training steps in a fresh process (minus its RSS before the model is built,
     after a warm-up), with glibc's mmap threshold fixed so that RSS follows the live tensors: the
     step's own memory, not the allocator's history (default malloc: see docs/benchmarks.md).
     With activation checkpointing too: kept stage outputs + the largest part rerun in backward."""
-    from memory_calibration import measure, predict
-
-    estimate = predict(model, V, B, "fp32", "cpu", mmap=True, activation_checkpointing=checkpointed)
-    got = measure(model, V, B, "fp32", "cpu", steps=2, mmap=True, activation_checkpointing=checkpointed)
+    calibration = bench_module("memory_calibration")
+    estimate = calibration.predict(model, V, B, "fp32", "cpu", mmap=True, activation_checkpointing=checkpointed)
+    got = calibration.measure(model, V, B, "fp32", "cpu", steps=2, mmap=True, activation_checkpointing=checkpointed)
     measured = got["measured"]
     assert measured > 50 * 2**20, "too small to measure above the noise"
     assert estimate.step == pytest.approx(measured, rel=0.25), (estimate.step / 2**20, got)

@@ -15,9 +15,7 @@ from __future__ import annotations
 import base64
 import json
 import os
-import random
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -34,20 +32,6 @@ BUCKET = "aniformer-mlflow-test"
 PASSWORD = "correct-horse-battery-staple-42"
 
 pytestmark = pytest.mark.slow
-
-
-def free_port() -> int:
-    """A free port below the kernel's ephemeral range: one from `bind(0)` could be taken by any process
-    binding port 0 (the session's Ray workers do) before the server binds it."""
-    low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    for port in random.sample(range(20000, low), 200):
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return port
-    raise RuntimeError("no free port")
 
 
 def descendants(pid: int) -> set[int]:
@@ -74,8 +58,8 @@ def alive(pid: int) -> bool:
 class Server:
     """One `python -m pipeline.mlflow_server` on 127.0.0.1, its output in a log file."""
 
-    def __init__(self, tmp: Path, name: str, args: list[str], env: dict[str, str]):
-        self.port = free_port()
+    def __init__(self, tmp: Path, name: str, port: int, args: list[str], env: dict[str, str]):
+        self.port = port
         self.url = f"http://127.0.0.1:{self.port}"
         self.log = tmp / f"{name}.log"
         with open(self.log, "w") as out:
@@ -110,12 +94,12 @@ class Server:
 
 
 @pytest.fixture
-def servers(tmp_path):
+def servers(tmp_path, free_ports):
     """Starts servers; stops (then kills) every one at the end, whatever the test did."""
     started: list[Server] = []
 
     def start(name: str, args: list[str], env: dict[str, str]) -> Server:
-        server = Server(tmp_path, name, args, env)
+        server = Server(tmp_path, name, free_ports(1)[0], args, env)
         started.append(server)
         server.wait_ready()
         return server
@@ -153,7 +137,7 @@ def request(url: str, user: str, password: str, body: dict | None = None) -> url
     return req
 
 
-def test_auth_answers_401_without_credentials_and_200_with_the_admin_password(tmp_path, servers):
+def test_auth_answers_401_without_credentials_and_200_with_the_admin_password(tmp_path, servers, free_ports):
     """Also: one server per store (a second is refused at once), and with --backup the users' database
     is backed up and restored beside the runs' one."""
     password_file = tmp_path / "auth_token"
@@ -170,7 +154,7 @@ def test_auth_answers_401_without_credentials_and_200_with_the_admin_password(tm
     assert status(f"{server.url}/health") == 200  # the wrapper's readiness probe sends no credentials
 
     second = subprocess.run([sys.executable, "-m", "pipeline.mlflow_server", "--host", "127.0.0.1", "--port",
-                             str(free_port()), "--store", str(tmp_path / "store")], cwd=ROOT, env=env,
+                             str(free_ports(1)[0]), "--store", str(tmp_path / "store")], cwd=ROOT, env=env,
                             capture_output=True, text=True, timeout=60)
     lines = second.stderr.strip().splitlines()
     assert second.returncode == 2 and len(lines) == 1, second.stderr[-3000:]

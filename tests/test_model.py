@@ -288,11 +288,10 @@ def test_compiled_model_matches_eager(repo_root):
         torch.testing.assert_close(g, eager_grads[n], rtol=1e-3, atol=1e-5 * scale, msg=n)
 
 
-def test_model_bench_reports_the_kernel_really_run_and_the_error(repo_root):
+def test_model_bench_reports_the_kernel_really_run_and_the_error(bench_module):
     """bench/model_bench.py's columns that the GPU rows rely on: the attention op a training step ran
     (fused for ours, the V x V math kernel for the reference) and the error against fp32."""
-    sys.path.insert(0, str(repo_root / "bench"))
-    from model_bench import measure
+    measure = bench_module("model_bench").measure
 
     ours = measure("ours", "cpu", vertices=48, window=3, batch=2, steps=1, threads=1, activation_checkpointing=True,
                    heads=(8, 4, 4, 2))  # head dim 128 in every stage

@@ -163,7 +163,8 @@ STREAM_TINY = ["data.source=stream", "data.shuffle=none", "data.pairs_per_epoch=
 
 @pytest.mark.slow
 @pytest.mark.ray
-def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monkeypatch, job_main, repo_root, capsys):
+def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monkeypatch, job_main, repo_root, capsys,
+                                                      scoring):
     """jobs/train.py on pairs made on the fly (no bank is written), then jobs/evaluate.py on its
     checkpoint: every stream split, the model beside the three baselines."""
     import csv
@@ -188,8 +189,6 @@ def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monk
     ratio = float(rows["AniFormer"]["seen"]) / float(rows["deformation transfer"]["seen"])
     assert f"| AniFormer ÷ transfer | {ratio:.2f} |" in markdown and "Acceleration error (mm/frame²" in markdown
     # the model's and the copy-driver's rows are their PMD on the same 2 stream pairs, recomputed here
-    from conftest import model_predict, recomputed_pmd
-
     from aniformer.checkpoint import model_from_checkpoint
     from aniformer.synth.stream import StreamPairs
 
@@ -198,9 +197,9 @@ def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monk
     stream = StreamPairs(data["topology"], window=model.config.window, center=data["center"], seed=data["seed"],
                          eval_pairs=2)
     for split in ("seen", "rotated", "build_mismatch"):
-        assert float(rows["copy-driver"][split]) == pytest.approx(recomputed_pmd(stream, split, 2), rel=1e-4)
+        assert float(rows["copy-driver"][split]) == pytest.approx(scoring.pmd(stream, split, 2), rel=1e-4)
         assert float(rows["AniFormer"][split]) == pytest.approx(
-            recomputed_pmd(stream, split, 2, model_predict(model), model.config.output_frames()), rel=1e-4)
+            scoring.pmd(stream, split, 2, scoring.model_predict(model), model.config.output_frames()), rel=1e-4)
     # the trivial baselines are far from the truth on mismatched builds; the prior is not
     mismatch = {name: float(r["build_mismatch"]) for name, r in rows.items()}
     assert mismatch["deformation transfer"] < 0.5 * min(mismatch["copy-driver"], mismatch["static target"])

@@ -79,26 +79,6 @@ TRIALS = 2
 # ------------------------------------------------------------------ who listens where (/proc)
 
 
-def free_ports(n: int) -> list[int]:
-    """n distinct free TCP ports below the kernel's ephemeral range: a port handed out by `bind(0)`
-    could be taken by any process binding port 0 (Ray's own gRPC servers do) before we use it."""
-    import random
-
-    low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    candidates = random.sample(range(20000, low), min(4 * n + 50, low - 20000))  # above Ray's worker ports
-    chosen = []
-    for port in candidates:
-        with socket.socket() as s:
-            try:
-                s.bind(("", port))
-            except OSError:
-                continue
-        chosen.append(port)
-        if len(chosen) == n:
-            return chosen
-    raise RuntimeError(f"could not find {n} free ports")
-
-
 def group_pids(pgid: int) -> set[int]:
     pids = set()
     for entry in Path("/proc").iterdir():
@@ -185,7 +165,7 @@ def addresses(port: int, pids: set[int]) -> set[str]:
 
 
 WILDCARD = {"0.0.0.0", "::"}
-WORKER_PORTS = range(10002, 20000)  # Ray's default --min-worker-port/--max-worker-port; free_ports() stays above
+WORKER_PORTS = range(10002, 20000)  # Ray's default --min-worker-port/--max-worker-port; the free_ports fixture stays above
 
 
 # ------------------------------------------------------------------ the cluster
@@ -283,7 +263,7 @@ def _healthy(url: str) -> bool:
 
 
 @pytest.fixture(scope="module")
-def cluster(tmp_path_factory):
+def cluster(tmp_path_factory, free_ports):
     root = tmp_path_factory.mktemp("system")
     (gcs, dashboard, client, head_agent, head_agent_grpc, head_metrics, head_runtime_env, head_nm, head_om,
      autoscaler_metrics, dashboard_metrics, mlflow_port, *worker_ports) = free_ports(12 + 2 * 6)

@@ -147,17 +147,15 @@ def test_two_worker_ddp_on_two_nodes_is_tracked_in_mlflow(tmp_path, tiny_bank, r
     assert [a.path for a in client.list_artifacts(run.info.run_id, "checkpoints")] == ["checkpoints/best.pt"]
 
 
-def restore_nodes(cluster, count: int) -> None:
-    """Add worker nodes (as conftest makes them) until `cluster` has `count` again."""
-    from conftest import NODE_CPUS, OBJECT_STORE_BYTES
-
+def restore_nodes(cluster, count: int, node_args: dict) -> None:
+    """Add worker nodes (`node_args`: as conftest makes them) until `cluster` has `count` again."""
     while len(cluster.list_all_nodes()) < count:
-        cluster.add_node(num_cpus=NODE_CPUS, object_store_memory=OBJECT_STORE_BYTES)
+        cluster.add_node(**node_args)
     cluster.wait_for_nodes()
 
 
 def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_bank, ray_cluster, ray_address,
-                                                                   repo_root):
+                                                                   repo_root, node_args):
     """A node lost mid-training: Ray Train restarts the workers from the last registered checkpoint and the
     run goes on from there. The kill lands once the checkpoint of epoch 1 is registered (so there is one to
     restore) and while epochs 2 and 3 are still to train; DDP ranks step in lockstep, so with a rank dead
@@ -174,11 +172,11 @@ def test_killing_a_worker_node_restores_from_the_last_checkpoint(tmp_path, tiny_
         assert registered < epochs, f"the checkpoint of epoch {registered} was registered before the kill"
         ray_cluster.remove_node(victim, allow_graceful=False)  # SIGKILL, like a lost machine
         assert job.poll() is None, "the job ended before the node was killed:\n" + output(job)[-3000:]
-        restore_nodes(ray_cluster, nodes)  # STRICT_SPREAD needs two nodes to restart the workers
+        restore_nodes(ray_cluster, nodes, node_args)  # STRICT_SPREAD needs two nodes to restart the workers
         console = finish(job)
     finally:  # never leave the job running nor the shared cluster short of a node, whatever failed
         stop(job)
-        restore_nodes(ray_cluster, nodes)
+        restore_nodes(ray_cluster, nodes, node_args)
 
     client, (run,) = job_runs(out)
     resumed = logged(client, run, "resumed_from_epoch")  # logged only by workers that started from a checkpoint
