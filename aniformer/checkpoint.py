@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from importlib.resources import files
 from pathlib import Path
 
 import torch
@@ -25,8 +26,10 @@ from aniformer.baselines import build_model
 from aniformer.errors import UserError
 from aniformer.files import atomic_path
 
-#: The model shipped with the project (docs/model_card.md), what ``--checkpoint pretrained`` names.
-PRETRAINED = Path(__file__).resolve().parents[1] / "models" / "aniformer.pt"
+#: The model shipped with the project (docs/model_card.md), what ``--checkpoint pretrained`` names: package data of
+#: `aniformer` (pyproject.toml), so an installed package has it too. pip installs packages as plain files, so it
+#: is a real path (`Path` fails at import otherwise, not at the first load).
+PRETRAINED = Path(files("aniformer") / "weights" / "aniformer.pt")
 KEYS = ("config", "model", "optimizer", "scheduler", "epoch", "step", "rng")
 FILENAME = "checkpoint.pt"
 # Far above any model of this project (the shipped one has 46,629 parameters, configs/paper.yaml 12 M): a config

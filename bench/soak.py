@@ -9,7 +9,7 @@ store (``OUT/<round>/<job>/mlflow.db``):
     train_s0   jobs/train.py --config configs/tiny.yaml train.seed=0 train.epochs=6
     train_s1   the same with train.seed=1
     sweep      jobs/sweep.py --config configs/sweep_tiny.yaml sweep.num_samples=2 sweep.grace_period=2
-    evaluate   jobs/evaluate.py --checkpoint models/aniformer.pt --pairs 4 --overwrite
+    evaluate   jobs/evaluate.py --checkpoint pretrained --pairs 4 --overwrite
 
 Steps:
 
@@ -78,7 +78,7 @@ def job_commands(folder: Path) -> dict[str, list[str]]:
         "sweep": [PYTHON, str(ROOT / "jobs/sweep.py"), "--config", str(ROOT / "configs/sweep_tiny.yaml"),
                   "--out", out("sweep"), "--name", "sweep", "sweep.num_samples=2", "sweep.grace_period=2"],
         # --overwrite: a driver killed after its rename but before its run ended leaves a complete --out
-        "evaluate": [PYTHON, str(ROOT / "jobs/evaluate.py"), "--checkpoint", str(ROOT / "models/aniformer.pt"),
+        "evaluate": [PYTHON, str(ROOT / "jobs/evaluate.py"), "--checkpoint", "pretrained",
                      "--out", out("evaluate"), "--name", "pretrained", "--pairs", "4", "--device", "cpu",
                      "--no-progress", "--overwrite"],
     }

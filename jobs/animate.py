@@ -54,7 +54,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--checkpoint", default="pretrained", metavar="CKPT",
                    help="checkpoint file, MLflow run id, registered model (models:/NAME/latest, models:/NAME/VERSION, "
-                        "models:/NAME@ALIAS), or 'pretrained' (the default: models/aniformer.pt, see docs/model_card.md)")
+                        "models:/NAME@ALIAS), or 'pretrained' (the default: the shipped model, docs/model_card.md)")
     p.add_argument("--target", required=True, metavar="MESH", help="the mesh to animate (OBJ, PLY, ...)")
     p.add_argument("--driving", required=True, metavar="DIR_OR_GLOB", help="driving frames: a directory or a glob")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")

@@ -41,7 +41,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--checkpoint", required=True, metavar="CKPT",
                    help="checkpoint file, MLflow run id, registered model (models:/aniformer/latest), "
-                        "or pretrained (models/aniformer.pt)")
+                        "or pretrained (the shipped model, aniformer/weights/aniformer.pt)")
     p.add_argument("--out", required=True, metavar="DIR", help="directory for the tables and plots")
     p.add_argument("--bank", metavar="DIR", help="mesh bank (default: bank/ beside the checkpoint; none for a stream)")
     p.add_argument("--topology", help="stream checkpoints: the Anny topology of the pairs (default: the training one)")

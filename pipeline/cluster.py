@@ -36,7 +36,7 @@ import socket
 
 import ray
 
-from aniformer.errors import UserError
+from aniformer.errors import UserError, root_cause
 
 LOCALHOST = "127.0.0.1"
 # Ray's switch for Windows and macOS, where it runs single-node on the loopback address by default.
@@ -62,11 +62,10 @@ def _free_local_port() -> int:
 
 
 def root_line(error: BaseException) -> str:
-    """A Ray error and its innermost cause in one line. Ray puts a whole traceback into its "Failed to
-    connect to GCS" message: the traceback's last line is the exception."""
+    """A Ray error and its root cause (`aniformer.errors.root_cause`) in one line. Ray puts a whole
+    traceback into its "Failed to connect to GCS" message: the traceback's last line is the exception."""
     outer = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-    while error.__cause__ is not None:
-        error = error.__cause__
+    error = root_cause(error)
     lines = [line.strip() for line in str(error).splitlines() if line.strip()] or [type(error).__name__]
     root = lines[-1] if "Traceback (most recent call last)" in str(error) else lines[0]
     return outer if root == outer else f"{outer} ({root})"

@@ -3,10 +3,11 @@
 jobs/train.py logs its run's best checkpoint as the MLflow model `model` of the run (`log_best_model`:
 an `mlflow.pyfunc` model around the checkpoint file, with the run config as metadata, a signature and
 an input example) and registers it as a new version of the registered model `aniformer`
-(`--register-as NAME`, `--no-register`). `resolve_checkpoint` takes `models:/NAME/latest`,
-`models:/NAME/VERSION` and `models:/NAME@ALIAS` besides what `pipeline.tracking.resolve_checkpoint`
-takes (a file, a run id): it downloads the version's checkpoint artifact, which the caller loads with
-`aniformer.checkpoint.model_from_checkpoint` (`torch.load(weights_only=True)`).
+(`--register-as NAME`, `--no-register`). `resolve_checkpoint` turns a job's ``--checkpoint`` into a local
+file: a checkpoint file or directory as it is, an MLflow run id (`pipeline.tracking.download_run_checkpoint`),
+or `models:/NAME/latest`, `models:/NAME/VERSION` and `models:/NAME@ALIAS` (`download_model_checkpoint`: the
+version's checkpoint artifact). The caller loads it with `aniformer.checkpoint.model_from_checkpoint`
+(`torch.load(weights_only=True)`).
 
 `mlflow.pyfunc.load_model(uri).predict(inputs)` is the model's forward pass on a batch of windows.
 `inputs` is a dict of numpy arrays (a tensor-based signature):
@@ -33,8 +34,7 @@ import mlflow.pyfunc
 import numpy as np
 
 from aniformer.errors import UserError
-from pipeline.tracking import Tracker, existing_store, quiet_mlflow
-from pipeline.tracking import resolve_checkpoint as resolve_run_checkpoint
+from pipeline.tracking import RUN_ID, Tracker, download_run_checkpoint, existing_store, quiet_mlflow
 
 MODEL_NAME = "model"  # the logged model's name in its run
 CHECKPOINT_KEY = "checkpoint"  # the checkpoint's key among the pyfunc model's artifacts
@@ -156,10 +156,24 @@ def log_best_model(tracker: Tracker, checkpoint: Path, register_as: str | None) 
 
 
 def resolve_checkpoint(reference: str, scratch: Path) -> Path:
-    """A checkpoint path from a registered model URI (its checkpoint artifact, downloaded into
-    `scratch`), else from a file, directory or run id (`pipeline.tracking.resolve_checkpoint`)."""
-    if not reference.startswith("models:/"):
-        return resolve_run_checkpoint(reference, scratch)
+    """A job's ``--checkpoint`` as a local checkpoint file or directory: a registered model URI's checkpoint
+    (`download_model_checkpoint`), a file or directory that exists as it is, else an MLflow run id's or
+    ``runs:/`` URI's best checkpoint (`pipeline.tracking.download_run_checkpoint`); downloads go into `scratch`."""
+    if reference.startswith("models:/"):
+        return download_model_checkpoint(reference, scratch)
+    path = Path(os.path.expanduser(reference))
+    if path.exists():
+        return path
+    match = RUN_ID.fullmatch(reference)
+    if match is None:
+        raise UserError(f"checkpoint not found: {reference} (give a checkpoint file, an MLflow run id or a "
+                        "registered model URI)")
+    return download_run_checkpoint(match.group(1), scratch)
+
+
+def download_model_checkpoint(reference: str, scratch: Path) -> Path:
+    """The checkpoint artifact of registered model version `reference` (models:/NAME/VERSION, models:/NAME/latest
+    or models:/NAME@ALIAS), downloaded into `scratch/model`."""
     if MODEL_URI.fullmatch(reference) is None:
         raise UserError(f"{reference}: not a registered model URI (models:/NAME/VERSION, models:/NAME/latest "
                         "or models:/NAME@ALIAS)")

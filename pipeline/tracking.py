@@ -36,7 +36,7 @@ from pathlib import Path
 from mlflow.entities import Metric, Param, RunStatus, RunTag
 from mlflow.tracking import MlflowClient
 
-from aniformer.errors import UserError
+from aniformer.errors import UserError, root_cause
 
 JOB_TAG = "aniformer.job"
 OUT_TAG = "aniformer.out"  # the absolute output directory of the job
@@ -68,20 +68,16 @@ def require_reachable(uri: str) -> None:
         http_request(get_default_host_creds(uri), "/health", "GET", max_retries=0, timeout=PROBE_TIMEOUT_S,
                      raise_on_status=False)
     except Exception as e:  # refused, timed out, no such host, TLS: all one line
-        raise UserError(f"MLflow tracking server {uri} does not answer ({_root_cause(e)}); start it, or unset "
+        raise UserError(f"MLflow tracking server {uri} does not answer ({_connection_error(e)}); start it, or unset "
                         "MLFLOW_TRACKING_URI to use ./mlflow.db") from None
     _READY.add(uri)
 
 
-def _root_cause(error: BaseException) -> str:
-    """The innermost error's message ("[Errno 111] Connection refused"), not requests' and urllib3's
-    wrappers around it."""
-    seen = []
-    while error is not None and error not in seen:
-        seen.append(error)
-        error = error.__cause__ or error.__context__ or getattr(error, "reason", None)
-        error = error if isinstance(error, BaseException) else None
-    message = " ".join(str(seen[-1]).split()) or type(seen[-1]).__name__
+def _connection_error(error: BaseException) -> str:
+    """The message of the root cause ("[Errno 111] Connection refused"), not of MLflow's, requests' and
+    urllib3's wrappers around it."""
+    root = root_cause(error)
+    message = " ".join(str(root).split()) or type(root).__name__
     return message.rsplit(": ", 1)[-1][:200]  # urllib3 prefixes the connection object's repr
 
 
@@ -301,23 +297,18 @@ def existing_store(what: str) -> str:
     return uri
 
 
-def resolve_checkpoint(reference: str, scratch: Path) -> Path:
-    """A checkpoint path from a file/directory, or an MLflow run id (downloads checkpoints/best.pt)."""
-    path = Path(os.path.expanduser(reference))
-    match = RUN_ID.fullmatch(reference)
-    if path.exists() or match is None:
-        if not path.exists():
-            raise UserError(f"checkpoint not found: {reference} (give a checkpoint file or an MLflow run id)")
-        return path
+def download_run_checkpoint(run_id: str, scratch: Path) -> Path:
+    """The best checkpoint (`CHECKPOINT_ARTIFACT`) of MLflow run `run_id`, downloaded into `scratch/RUN_ID`.
+    A job's ``--checkpoint`` comes here through `pipeline.registry.resolve_checkpoint`."""
     quiet_mlflow()
     import mlflow
 
-    uri = existing_store(f"MLflow run {match.group(1)}")
+    uri = existing_store(f"MLflow run {run_id}")
     try:
-        local = mlflow.artifacts.download_artifacts(run_id=match.group(1), artifact_path=CHECKPOINT_ARTIFACT,
-                                                    dst_path=str(scratch / match.group(1)), tracking_uri=uri)
+        local = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=CHECKPOINT_ARTIFACT,
+                                                    dst_path=str(scratch / run_id), tracking_uri=uri)
     except Exception as e:  # unknown run, no such artifact, unreachable server: all one line
         first = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise UserError(f"MLflow run {match.group(1)}: cannot download {CHECKPOINT_ARTIFACT} "
+        raise UserError(f"MLflow run {run_id}: cannot download {CHECKPOINT_ARTIFACT} "
                         f"from {uri} ({first[:200]})") from None
     return Path(local)

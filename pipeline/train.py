@@ -34,7 +34,7 @@ from ray.train.torch import TorchTrainer
 
 from aniformer.baselines import build_model
 from aniformer.checkpoint import FILENAME, save_checkpoint, unwrap
-from aniformer.errors import UserError
+from aniformer.errors import UserError, root_cause
 from aniformer.files import atomic_path
 from aniformer.losses import loss_terms
 from aniformer.metrics import PMD_SCALE, pmd
@@ -299,21 +299,6 @@ def fit(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracke
         faces: np.ndarray, console: Console | None = None) -> ray.train.Result:
     """Train `spec` on the pairs of `bank_dir`; checkpoints under `storage/ray_run_name(name)` (resumed if present)."""
     return build_trainer(spec, bank_dir, storage, name, tracker, faces, console=console).fit()
-
-
-def root_cause(error: BaseException) -> BaseException:
-    """The exception at the bottom of Ray's wrappers: a worker group's lowest failed rank, a controller's
-    failure, a task error's cause, each exception's `__cause__`."""
-    seen = set()
-    while id(error) not in seen:
-        seen.add(id(error))
-        failures = getattr(error, "worker_failures", None)
-        inner = (failures[min(failures)] if failures else None) or getattr(error, "controller_failure", None) \
-            or getattr(error, "cause", None) or error.__cause__
-        if not isinstance(inner, BaseException):
-            break
-        error = inner
-    return error
 
 
 def ray_logs() -> str:

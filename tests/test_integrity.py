@@ -531,7 +531,7 @@ def test_jobs_starting_together_on_a_fresh_store_all_succeed(tmp_path):
 
 
 def test_a_run_id_lookup_without_a_store_creates_none(tmp_path, monkeypatch):
-    from pipeline.tracking import resolve_checkpoint
+    from pipeline.registry import resolve_checkpoint
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)

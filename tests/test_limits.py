@@ -223,7 +223,9 @@ def test_a_tracking_server_that_refuses_connections_fails_in_one_line(tmp_path, 
                                                                        free_ports):
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://127.0.0.1:{free_ports(1)[0]}")
     start = time.perf_counter()
-    err = one_line_error(capsys, lambda argv: tracking.resolve_checkpoint("0123456789abcdef" * 2, tmp_path))
+    from pipeline.registry import resolve_checkpoint
+
+    err = one_line_error(capsys, lambda argv: resolve_checkpoint("0123456789abcdef" * 2, tmp_path))
     assert "does not answer ([Errno 111] Connection refused)" in err
     with pytest.raises(UserError, match="does not answer"):
         tracking.start_job_run("job", {"a": 1}, out=tmp_path / "out")
@@ -264,6 +266,36 @@ def test_a_server_that_answers_passes_the_probe_once(fresh_probe):
         server.shutdown()
         server.server_close()
     tracking.require_reachable(uri)  # reached before: not probed again (the server is gone now)
+
+
+# ------------------------------------------------------------------------------ root causes
+
+
+def test_the_root_cause_walks_every_kind_of_wrapper_and_stops_where_the_chain_is_cut():
+    """One walker (aniformer.errors.root_cause) for the one-line errors of the tracking probe, Ray's start
+    and a failed training: each wrapper those libraries put around the first error, and Python's own chains."""
+    from aniformer.errors import root_cause
+
+    class Wrapper(Exception):
+        def __init__(self, **links):
+            super().__init__("wrapper")
+            self.__dict__.update(links)
+
+    first, second = OSError(111, "Connection refused"), ValueError("rank 1")
+    implicit = RuntimeError("raised while handling the first")  # requests' ConnectionError around urllib3's
+    implicit.__context__ = first
+    cut = RuntimeError("raised from None")
+    cut.__context__, cut.__suppress_context__ = first, True
+
+    assert root_cause(Wrapper(worker_failures={1: second, 0: first})) is first  # Ray Train: the lowest failed rank
+    assert root_cause(Wrapper(controller_failure=Wrapper(cause=first))) is first  # its controller; a task error
+    assert root_cause(Wrapper(reason=first)) is first  # urllib3's MaxRetryError
+    assert root_cause(implicit) is first
+    assert root_cause(cut) is cut  # `from None`: its own message is the whole story
+    assert root_cause(Wrapper(cause="a string", reason=None)).args == ("wrapper",)  # not exceptions: no links
+    loop = Wrapper()
+    loop.__cause__ = Wrapper(cause=loop)
+    assert root_cause(loop) in (loop, loop.__cause__)  # a cycle ends the walk
 
 
 # ------------------------------------------------------------------------------ Ray's listeners

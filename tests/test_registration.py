@@ -1,4 +1,4 @@
-"""Targets of any topology (aniformer/registration.py) and the shipped model (models/aniformer.pt)."""
+"""Targets of any topology (aniformer/registration.py) and the shipped model (aniformer/weights/aniformer.pt)."""
 
 from __future__ import annotations
 
