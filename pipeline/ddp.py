@@ -34,7 +34,7 @@ logger = logging.getLogger(__name__)
 
 def loopback_interface() -> str | None:
     """The name of the network interface that holds 127.0.0.1 (``lo`` on Linux, ``lo0`` on macOS)."""
-    import psutil  # Ray's vendored copy, on the path once ray is imported
+    import psutil
 
     for name, addresses in psutil.net_if_addrs().items():
         if any(a.address == LOCALHOST for a in addresses):

@@ -336,7 +336,7 @@ def test_a_jobs_local_ray_listens_on_localhost_only():
 
 
 JOB_LISTENERS = """
-import importlib, json, sys, threading, time, ray, psutil  # psutil: Ray's vendored copy, on the path after ray
+import importlib, json, sys, threading, time, ray, psutil
 found, stop = set(), threading.Event()
 
 def watch():
