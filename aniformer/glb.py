@@ -241,7 +241,7 @@ def write_rigged_glb(path: str | os.PathLike, vertices: np.ndarray, faces: np.nd
     """Write a skinned mesh and its clip as a GLB, atomically: ``vertices (V, 3)`` (z up, metres: the bind
     pose) and ``faces``, ``rig`` (``aniformer.rig.Rig``: joints, bind transforms, 4 weights per vertex) and
     ``motion`` (``aniformer.rig.RigMotion``). y up; the mesh node (``name``) and the skeleton's root joint
-    are the scene's two roots; each joint keys its local rotation at every frame and the root joint its
+    are the scene's two roots; each joint that turns keys its local rotation at every frame and the root joint its
     translation, STEP at k / fps plus an end key at N / fps, as ``write_glb``'s clip. No morph targets."""
     frames = len(motion.rotations)
     _checked_frames(motion.root[:, None], fps)
@@ -278,7 +278,8 @@ def write_rigged_glb(path: str | os.PathLike, vertices: np.ndarray, faces: np.nd
     if frames > 1:
         keys = np.arange(frames + 1)
         for j in range(len(rig.names)):
-            animation.add(j + 1, "rotation", keys, buf.array(np.concatenate([rotations[:, j], rotations[-1:, j]]), "VEC4"))
+            if np.any(rotations[:, j] != rotations[0, j]):  # a joint held still keeps its node's rotation: no channel
+                animation.add(j + 1, "rotation", keys, buf.array(np.concatenate([rotations[:, j], rotations[-1:, j]]), "VEC4"))
         animation.add(1, "translation", keys, buf.array(np.concatenate([root, root[-1:]]), "VEC3"))
     mesh = {"name": name, "primitives": [{"attributes": attributes, "indices": indices, "mode": 4, "material": 0}]}
     gltf = _document(buf, animation, nodes, [mesh], name, fps, extras)

@@ -4,6 +4,7 @@ Run from the repository root (minutes per checkout on 2 cores):
 
     python bench/animate_bench.py --out bench/results/animate_bench.json
     python bench/animate_bench.py --checkout before=/tmp/baseline --checkout after=.   # side by side
+    python bench/animate_bench.py --targets 369 18k --frames 300 --rig   # also rigged.glb and motion.bvh
 
 Inputs, made here and shared by every checkout so the runs differ only in code:
 - a driving clip on Anny's 369-vertex topology (``jumping_jacks``, 30 or 300 frames, OBJ files);
@@ -12,7 +13,8 @@ Inputs, made here and shared by every checkout so the runs differ only in code:
   foreign topology: registered, as an artist's character would be).
 
 Each run is one ``jobs/animate.py`` process (``--no-progress``), as a user starts it; its peak RSS is
-the process's ``ru_maxrss`` (``os.wait4``), its stage times the ``seconds`` of animation.json.
+the process's ``ru_maxrss`` (``os.wait4``), its stage times the ``seconds`` of animation.json; with
+``--rig`` each row also has the sizes of animation.glb, rigged.glb and motion.bvh.
 """
 
 from __future__ import annotations
@@ -76,11 +78,11 @@ def make_inputs(root: Path, frames: int, targets: list[str]) -> dict[str, Path]:
     return paths
 
 
-def run_animate(checkout: Path, target: Path, clip: Path, out: Path) -> dict:
-    """One animate process: its animation.json's stage seconds, wall time and peak RSS."""
+def run_animate(checkout: Path, target: Path, clip: Path, out: Path, rig: bool = False) -> dict:
+    """One animate process: its animation.json's stage seconds, wall time and peak RSS (and output sizes)."""
     env = {**os.environ, "PYTHONPATH": str(checkout)}  # the checkout's package, not the installed one
     command = [sys.executable, str(checkout / "jobs" / "animate.py"), "--target", str(target), "--driving", str(clip),
-               "--out", str(out), "--overwrite", "--no-progress"]
+               "--out", str(out), "--overwrite", "--no-progress", *(["--rig"] if rig else [])]
     began = time.perf_counter()
     process = subprocess.Popen(command, env=env, cwd=checkout, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     output = process.stdout.read().decode()
@@ -89,8 +91,10 @@ def run_animate(checkout: Path, target: Path, clip: Path, out: Path) -> dict:
     if status != 0:
         raise RuntimeError(f"{' '.join(command)} failed:\n{output[-2000:]}")
     summary = json.loads((out / "animation.json").read_text())
+    sizes = {f"{name}_mb": round((out / name).stat().st_size / 2**20, 3)
+             for name in ("animation.glb", "rigged.glb", "motion.bvh") if rig}
     return {"wall_s": round(wall, 2), "peak_rss_gb": round(usage.ru_maxrss / 2**20, 3),
-            "frames": summary["frames"], "seconds": summary["seconds"]}
+            "frames": summary["frames"], "seconds": summary["seconds"], **summary.get("rig", {}), **sizes}
 
 
 def main() -> None:
@@ -100,6 +104,7 @@ def main() -> None:
     p.add_argument("--targets", nargs="+", default=list(TARGETS), choices=list(TARGETS))
     p.add_argument("--frames", nargs="+", type=int, default=list(CLIPS))
     p.add_argument("--inputs", type=Path, help="folder for the generated inputs (kept; default: a temp folder)")
+    p.add_argument("--rig", action="store_true", help="animate with --rig, and report the output files' sizes")
     p.add_argument("--out", type=Path, help="write the rows as JSON here")
     args = p.parse_args()
     checkouts = dict(c.split("=", 1) for c in args.checkout) or {"now": str(REPO)}
@@ -112,7 +117,7 @@ def main() -> None:
                 for label, checkout in checkouts.items():
                     row = {"checkout": label, "target": name, "frames": frames,
                            **run_animate(Path(checkout).resolve(), inputs[name], inputs["clip"],
-                                         Path(scratch) / "out")}
+                                         Path(scratch) / "out", args.rig)}
                     row["fps_end_to_end"] = round(frames / row["wall_s"], 2)
                     print(json.dumps(row), flush=True)
                     rows.append(row)

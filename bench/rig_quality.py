@@ -38,7 +38,7 @@ def main() -> None:
     from aniformer.mesh import center_bbox
     from aniformer.metrics import PMD_SCALE, pmd_per_frame
     from aniformer.registration import Correspondence
-    from aniformer.rig import build_rig, fit_motion, skin
+    from aniformer.rig import build_rig, fit_rig, skin
     from aniformer.synth.stream import TEST_SPLITS, StreamPairs
     from aniformer.synth.variants import variant_pairs
     from aniformer.transfer import deformation_transfer
@@ -74,8 +74,7 @@ def main() -> None:
                                                  faces)[0].numpy()
                     transfer_alone = center_bbox(fit.from_template(moved) if registered else moved)
                     source = (fit.template, topology, fit.mesh_on_template) if registered else (case["target"], topology, None)
-                    rig = build_rig(case["target"], *source)
-                    motion = fit_motion(rig, case["target"], frames)
+                    rig, motion = fit_rig(build_rig(case["target"], *source), case["target"], frames)
                     skinned = skin(rig, case["target"], torch.from_numpy(motion.world)).numpy()
                     animation_glb = write_glb(Path(scratch) / "animation.glb", frames, case["faces"])
                     rigged_glb = write_rigged_glb(Path(scratch) / "rigged.glb", case["target"], case["faces"], rig, motion)

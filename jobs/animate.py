@@ -251,10 +251,9 @@ def write_rig(tmp: Path, args, summary: dict, target, target_faces, world, rig_s
     """rigged.glb and motion.bvh of the animated ``world`` frames; the rig's size and fit into ``summary``."""
     from aniformer.bvh import write_bvh
     from aniformer.glb import write_rigged_glb
-    from aniformer.rig import build_rig, fit_motion
+    from aniformer.rig import build_rig, fit_rig
 
-    rig = build_rig(target, *rig_source, bone_names=args.bone_names)
-    motion = fit_motion(rig, target, world)
+    rig, motion = fit_rig(build_rig(target, *rig_source, bone_names=args.bone_names), target, world)
     write_rigged_glb(tmp / "rigged.glb", target, target_faces, rig, motion, fps=summary["fps"], name=summary["name"],
                      extras={"checkpoint": str(args.checkpoint), "driving": str(args.driving)})
     write_bvh(tmp / "motion.bvh", rig, motion, summary["fps"], UNITS[args.unit])
