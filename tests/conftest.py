@@ -239,3 +239,54 @@ def browser(tmp_path_factory):
     yield start
     for driver in drivers:
         driver.quit()
+
+
+# ------------------------------------------------------------------ the system tests' cluster and jobs
+# tests/test_cluster_jobs.py, test_cluster_mlflow_ui.py and test_cluster_security.py share one cluster and
+# one pair of jobs, started once per session (the machinery: tests/cluster_helpers.py).
+
+_UNTIL_LAST_USE: dict = {}  # fixture name -> ExitStack that stops what it started: see pytest_runtest_teardown
+
+
+@pytest.fixture(scope="session")
+def cluster(tmp_path_factory, free_ports):
+    """A real local Ray cluster started as cluster.yaml starts one (head + 2 worker nodes, `ray start`, token
+    authentication) with our MLflow server, every process in a group of its own
+    (``cluster_helpers.started_cluster``). Started once per session; stopped after the last test that asks
+    for it."""
+    import contextlib
+
+    from cluster_helpers import started_cluster
+
+    with contextlib.ExitStack() as stack:
+        started = stack.enter_context(started_cluster(tmp_path_factory.mktemp("system"), free_ports))
+        _UNTIL_LAST_USE["cluster"] = stack
+        try:
+            yield started
+        finally:
+            _UNTIL_LAST_USE.pop("cluster", None)
+
+
+@pytest.fixture(scope="session")
+def jobs(cluster):
+    """The tiny training job submitted through `ray job submit`, then the tiny sweep as soon as the training
+    job's mesh bank exists (the two share the cluster, as they would on a real one), both waited for
+    (``cluster_helpers.run_jobs``): a ``cluster_helpers.Jobs``. Run once per session; any test that needs
+    the runs asks for this, so each runs alone or in any order."""
+    from cluster_helpers import run_jobs
+
+    return run_jobs(cluster)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item, nextitem):
+    """Stop the `cluster` (3 Ray nodes and an MLflow server) once no test left to run asks for it, rather than
+    at the end of the session: the tests after it get the machine's 2 cores to themselves."""
+    stack = _UNTIL_LAST_USE.get("cluster")
+    if stack is None:
+        return
+    items = item.session.items
+    later = items[items.index(item) + 1:] if item in items else ()
+    if not any("cluster" in getattr(other, "fixturenames", ()) for other in later):
+        _UNTIL_LAST_USE.pop("cluster", None)
+        stack.close()

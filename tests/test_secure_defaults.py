@@ -1,7 +1,7 @@
 """Secure defaults that need no cluster: checkpoints never unpickle code, outputs stay inside
 `--out`, our MLflow server refuses to listen on every interface and keeps a consistent backup.
 
-(What listens where on a real Ray cluster and the token check: tests/test_system.py; the cluster
+(What listens where on a real Ray cluster and the token check: tests/test_cluster_security.py; the cluster
 config's security settings: tests/test_cluster_config.py.)
 """
 
