@@ -67,14 +67,15 @@ def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: in
         static_target_contender,
         transfer_contender,
     )
+    from pipeline.data import pair_source
 
     first = next(iter(specs.values())).data
-    make_sampler, available = _pair_samplers(first, bank_dir, seed, pairs)
-    splits = list(ablation.splits) or available
-    unknown = [s for s in splits if s not in available]
-    if unknown:
-        raise UserError(f"ablation.splits: unknown or empty split(s) {', '.join(unknown)}; the data has "
-                        f"{', '.join(available)}")
+    source = pair_source(first, bank_dir)
+    splits = _scored_splits(source, ablation)
+
+    def make_sampler(window: int, shuffle: str):
+        return source.with_settings(window=window, shuffle=shuffle, seed=seed, eval_pairs=pairs)
+
     samplers = {}  # one per shuffle mode, each caching a sampler per window
 
     def sampler_for(shuffle: str) -> Samplers:
@@ -100,20 +101,15 @@ def _evaluate(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: in
     return table, splits, {c.name: {split: float(per_split[split][c.name].mean()) for split in splits} for c in contenders}
 
 
-def _pair_samplers(data, bank_dir: Path, seed: int, pairs: int):
-    """(make_sampler(window, shuffle), the non-empty splits): the stream's, or the bank's."""
-    if data.source == "stream":
-        from aniformer.synth.stream import SPLITS, StreamPairs
-
-        return (lambda window, mode: StreamPairs(data.topology, window=window, center=data.center, seed=seed,
-                                                 eval_pairs=pairs)), list(SPLITS)
-    from pipeline.data import SPLITS, PairSampler, load_bank
-
-    bank = load_bank(bank_dir)
-    split_table = bank.manifest.splits
-    available = [s for s in SPLITS if s in split_table and split_table[s]["motions"] and split_table[s]["targets"]]
-    return (lambda window, mode: PairSampler(bank, window=window, shuffle=mode, center=data.center, seed=seed,
-                                             eval_pairs=pairs)), available
+def _scored_splits(source, ablation) -> list[str]:
+    """``ablation.splits``, else every split of the data with pairs; `UserError` naming one it lacks."""
+    available = source.non_empty_splits
+    splits = list(ablation.splits) or available
+    unknown = [s for s in splits if s not in available]
+    if unknown:
+        raise UserError(f"ablation.splits: unknown or empty split(s) {', '.join(unknown)}; the data has "
+                        f"{', '.join(available)}")
+    return splits
 
 
 def _notes(specs: dict, ablation, pairs: int, seed: int) -> list[str]:

@@ -21,6 +21,7 @@ complete; they and the metrics are logged to the MLflow run
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import re
@@ -28,12 +29,18 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from aniformer.cli import ArgumentParser, resolve_device, run
 from aniformer.errors import UserError
 from aniformer.files import claim_output, releases_locks, staged_output_dir
 from pipeline.registry import resolve_checkpoint
 from pipeline.tracking import RUN_ID, quiet_mlflow
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from pipeline.data import DataConfig, PairSource
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -72,11 +79,6 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--overwrite", action="store_true", help="replace an existing non-empty --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p.parse_args(argv)
-
-
-# --------------------------------------------------------------------------------------------
-# Job plumbing shared with jobs/animate.py (which imports it from here)
-# --------------------------------------------------------------------------------------------
 
 
 def _model_label(state: dict, model) -> str:
@@ -121,44 +123,55 @@ def check_flags(args: argparse.Namespace) -> tuple[list[float] | None, list[tupl
     return levels, compare
 
 
-def choose_data(args: argparse.Namespace, ckpt_path: Path, config: dict, levels):
-    """(pairs, seed, the data source, the splits to score, the noise split, the clip length of the
-    acceleration error or 0) for a checkpoint's run config: the target variants (--targets), its stream,
-    or a bank."""
-    from pipeline.data import DataConfig
+@dataclasses.dataclass(frozen=True)
+class EvalData:
+    """What a checkpoint is scored on (`choose_data`); read by field name only."""
 
-    data_cfg = {**DataConfig().to_dict(), **(config.get("data") or {})}  # the defaults, for fields it lacks
-    pairs = args.pairs or int(data_cfg["eval_pairs"])
-    seed = args.seed if args.seed is not None else int(data_cfg["seed"])
-    center = data_cfg["center"]
-    clip_frames = 0
+    source: PairSource  # the checkpoint's stream, or a bank, with the checkpoint's pair settings
+    pairs: int  # per split
+    seed: int
+    label: str  # the data, as the notes and results.json name it
+    columns: dict[str, str]  # what can be scored, name -> description: splits with pairs, or --targets' variants
+    notes: Sequence[str] = ()  # lines under the table
+    clip_frames: int = 0  # the acceleration error's clip length (a stream's splits only); 0: none
+    splits: Sequence[str] = ()  # the columns scored (--splits)
+    noise_split: str = ""  # the split of the noise sweep
+
+    def sampler(self, window: int, shuffle: str) -> PairSource:
+        """The pairs a model of ``window`` is scored on: every model's are the same pairs, shuffled as ``shuffle`` says."""
+        return self.source.with_settings(window=window, shuffle=shuffle, seed=self.seed, eval_pairs=self.pairs)
+
+
+def choose_data(args: argparse.Namespace, ckpt_path: Path, config: dict, levels) -> EvalData:
+    """What a checkpoint is scored on, from its run config and the flags: the target variants (--targets),
+    its stream (a stream checkpoint without --bank), or a bank."""
+    from pipeline.data import data_config
+
+    cfg = data_config(config)
+    pairs, seed = args.pairs or cfg.eval_pairs, cfg.seed if args.seed is None else args.seed
     if args.targets is not None:
-        source = _target_source(args, data_cfg, center, seed, pairs)
-    elif data_cfg.get("source") == "stream" and not args.bank:
-        source = _stream_source(args, data_cfg, center, seed, pairs)
-        from aniformer.evaluate import DEFAULT_CLIP_FRAMES
-        from aniformer.synth.poses import LIBRARY_FRAMES
-
-        clip_frames = DEFAULT_CLIP_FRAMES if args.clip_frames is None else args.clip_frames
-
-        if clip_frames > LIBRARY_FRAMES:
-            raise UserError(f"--clip-frames must be at most {LIBRARY_FRAMES} (the stream's longest clip), got {clip_frames}")
+        data = _target_data(args, cfg, pairs, seed)
+    elif cfg.source == "stream" and not args.bank:
+        data = _stream_data(args, cfg, pairs, seed)
     else:
-        if args.topology:
-            raise UserError("--topology applies to checkpoints trained on a stream (data.source: stream)")
-        source = _bank_source(args, ckpt_path, data_cfg, center, seed, pairs)
-    if args.clip_frames and not clip_frames:
+        data = _bank_data(args, ckpt_path, cfg, pairs, seed)
+    if args.clip_frames and not data.clip_frames:
         raise UserError("--clip-frames applies to the splits of a stream checkpoint (no --bank, no --targets)")
-    all_splits, descriptions, shuffle, make_sampler, notes, data_label = source
-    splits = [s.strip() for s in args.splits.split(",")] if args.splits else all_splits
-    unknown = [s for s in splits if s not in all_splits]
+    return _with_splits(args, data, levels)
+
+
+def _with_splits(args: argparse.Namespace, data: EvalData, levels) -> EvalData:
+    """``data`` with the columns to score (--splits, else all) and the noise sweep's split."""
+    columns = data.columns
+    splits = [s.strip() for s in args.splits.split(",")] if args.splits else list(columns)
+    unknown = [s for s in splits if s not in columns]
     if unknown or not splits:
         raise UserError(f"--splits: unknown split(s) {', '.join(unknown) or '(none given)'}; "
-                        f"the data has {', '.join(all_splits)}")
+                        f"the data has {', '.join(columns)}")
     noise_split = args.noise_split or ("unseen" if "unseen" in splits else splits[-1])
-    if levels is not None and noise_split not in all_splits:
-        raise UserError(f"--noise-split {noise_split!r} is not a split of the data ({', '.join(all_splits)})")
-    return pairs, seed, source, splits, noise_split, clip_frames
+    if levels is not None and noise_split not in columns:
+        raise UserError(f"--noise-split {noise_split!r} is not a split of the data ({', '.join(columns)})")
+    return dataclasses.replace(data, splits=splits, noise_split=noise_split)
 
 
 def refusals_line(refused: dict[str, list[bool]]) -> str:
@@ -167,18 +180,17 @@ def refusals_line(refused: dict[str, list[bool]]) -> str:
     return f"Refused by the self-check (aniformer/trust.py), of the model's results: {counts}."
 
 
-def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, descriptions: dict, notes: list,
-                   data_label: str, *, pairs: int, seed: int, splits: list, shuffle: str, noise_split: str,
-                   seconds: float, refused: dict[str, list[bool]] | None = None,
-                   accelerations: dict | None = None, clip_frames: int = 0) -> tuple[str, dict]:
+def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, data: EvalData, *, seconds: float,
+                   refused: dict[str, list[bool]] | None = None, accelerations: dict | None = None) -> tuple[str, dict]:
     """The results as Markdown (mean and SD tables with each model's ratios, the acceleration errors, the
     noise sweep, --targets' refusals) and as the results.json record."""
     from aniformer.evaluate import table_markdown
 
-    notes.append(f"{pairs} pairs per split (seed {seed}, window as each model's, vertex shuffling "
-                 f"'{shuffle}'; copy-driver on the same pairs unshuffled). Checkpoint: {args.checkpoint} "
-                 f"(epoch {state.get('epoch')}); data: {data_label}.")
-    markdown = table_markdown(table, splits, descriptions, notes=notes, ratios=True)
+    splits, pairs, seed, noise_split, clip_frames = data.splits, data.pairs, data.seed, data.noise_split, data.clip_frames
+    notes = [*data.notes, f"{pairs} pairs per split (seed {seed}, window as each model's, vertex shuffling "
+                          f"'{data.source.shuffle}'; copy-driver on the same pairs unshuffled). Checkpoint: "
+                          f"{args.checkpoint} (epoch {state.get('epoch')}); data: {data.label}."]
+    markdown = table_markdown(table, splits, data.columns, notes=notes, ratios=True)
     markdown += "\n" + table_markdown(spread, splits, title="Standard deviation of PMD over the pairs of each split")
     acceleration = acceleration_sd = None
     if accelerations is not None:
@@ -198,7 +210,7 @@ def results_report(args, state: dict, table: dict, spread: dict, sweep, levels, 
                      + table_markdown({k: {f"{lv:g}": v for lv, v in row.items()} for k, row in sweep.items()},
                                       [f"{lv:g}" for lv in levels], title=None)
                      + "\n![PMD vs noise](noise.png)\n")
-    result = {"checkpoint": args.checkpoint, "data": data_label, "pairs": pairs, "seed": seed,
+    result = {"checkpoint": args.checkpoint, "data": data.label, "pairs": pairs, "seed": seed,
               "splits": splits, "table": table, "pair_sd": spread, "seconds": seconds,
               "noise": None if sweep is None else {"split": noise_split,
                                                    "pmd": {k: {f"{lv:g}": v for lv, v in row.items()}
@@ -259,34 +271,33 @@ def contenders_of(args, rows: list, window: int, device):
     return contenders
 
 
-def score(args, rows, contenders, make_sampler, shuffle, splits, levels, noise_split, pairs, seed, device,
-          clip_frames: int = 0):
+def score(args, rows, contenders, data: EvalData, levels, device):
     """({row: {split: per-pair PMDs}}, the noise sweep or None, --targets: {variant: per pair, whether the
-    self-check refused the model's result} or None, ``clip_frames``: {row: {split: per-clip acceleration
+    self-check refused the model's result} or None, ``data.clip_frames``: {row: {split: per-clip acceleration
     errors}} or None), with a progress bar on stderr."""
     from tqdm import tqdm
 
     from aniformer.evaluate import DEFAULT_CLIP_PAIRS, Samplers, clip_accelerations, evaluate_pairs, noise_sweep, target_pmds
 
-    model = rows[0][1]
+    model, splits, pairs, seed = rows[0][1], data.splits, data.pairs, data.seed
     if args.targets is not None:
         refused: dict[str, list[bool]] = {}
         with tqdm(total=pairs, unit="pair", desc="evaluate targets", disable=args.no_progress, file=sys.stderr) as bar:
-            scores = target_pmds(model, make_sampler(model.config.window, "none"), args.target_split, splits,
+            scores = target_pmds(model, data.sampler(model.config.window, "none"), args.target_split, splits,
                                  pairs=pairs, device=device, batch_size=args.batch_size, progress=lambda: bar.update(1),
                                  refused=refused)
         return {rows[0][0]: scores.pop("model"), **scores}, None, refused, None
-    samplers = Samplers(make_sampler, shuffle)
-    steps = len(contenders) * (len(splits) + (len(levels) if levels else 0)) + (len(splits) if clip_frames else 0)
+    samplers = Samplers(data.sampler, data.source.shuffle)
+    steps = len(contenders) * (len(splits) + (len(levels) if levels else 0)) + (len(splits) if data.clip_frames else 0)
     with tqdm(total=steps, unit="split", desc="evaluate", disable=args.no_progress, file=sys.stderr) as bar:
         scores = evaluate_pairs(contenders, samplers, splits, pairs=pairs, batch_size=args.batch_size, seed=seed,
                                 progress=lambda *_: bar.update(1))
-        sweep = None if levels is None else noise_sweep(contenders, samplers, noise_split, levels, pairs=pairs,
+        sweep = None if levels is None else noise_sweep(contenders, samplers, data.noise_split, levels, pairs=pairs,
                                                         batch_size=args.batch_size, seed=seed,
                                                         progress=lambda *_: bar.update(1))
         accelerations = None
-        if clip_frames:
-            clips = make_sampler(clip_frames, "none")
+        if data.clip_frames:
+            clips = data.sampler(data.clip_frames, "none")
             clip_pairs = args.clip_pairs or min(pairs, DEFAULT_CLIP_PAIRS)
             accelerations = {c.name: {} for c in contenders}
             for split in splits:
@@ -311,29 +322,25 @@ def main(argv: list[str]) -> None:
     start = time.perf_counter()
     ckpt_path, model, state, others = load_models(checkpoint, compare)
     config = state["config"]
-    pairs, seed, (all_splits, descriptions, shuffle, make_sampler, notes, data_label), splits, noise_split, clip_frames = \
-        choose_data(args, ckpt_path, config, levels)
+    data = choose_data(args, ckpt_path, config, levels)
     name = args.name or _default_name(args.checkpoint)
     rows = [(args.name or _model_label(state, model), model), *others]
     contenders = contenders_of(args, rows, model.config.window, device)
-    scores, sweep, refused, accelerations = score(args, rows, contenders, make_sampler, shuffle, splits, levels,
-                                                  noise_split, pairs, seed, device, clip_frames)
+    scores, sweep, refused, accelerations = score(args, rows, contenders, data, levels, device)
     table = {name: {split: float(v.mean()) for split, v in row.items()} for name, row in scores.items()}
     spread = {name: {split: float(v.std(ddof=1)) if len(v) > 1 else float("nan") for split, v in row.items()}
               for name, row in scores.items()}
     seconds = time.perf_counter() - start
 
-    markdown, result = results_report(args, state, table, spread, sweep, levels, descriptions, notes, data_label,
-                                      pairs=pairs, seed=seed, splits=splits, shuffle=shuffle, noise_split=noise_split,
-                                      seconds=seconds, refused=refused, accelerations=accelerations,
-                                      clip_frames=clip_frames)
+    markdown, result = results_report(args, state, table, spread, sweep, levels, data, seconds=seconds,
+                                      refused=refused, accelerations=accelerations)
     result["per_pair"] = {name: {split: [round(float(x), 4) for x in v] for split, v in row.items()}
                           for name, row in scores.items()}  # the means' pairs, in pair order (as "refused")
     run_id = write_results(out, args, markdown, result, table, sweep, config, name)
     print(markdown.split("\n\n- ")[0].strip())
     if refused is not None:
         print(refusals_line(refused))
-    print(f"evaluated {len(scores)} models x {len(splits)} splits x {pairs} pairs in {seconds:.1f} s")
+    print(f"evaluated {len(scores)} models x {len(data.splits)} splits x {data.pairs} pairs in {seconds:.1f} s")
     print(f"results: {out / 'results.md'}, {out / 'results.csv'}" + (f", {out / 'noise.png'}" if sweep else ""))
     if run_id:
         from pipeline.tracking import tracking_uri
@@ -341,79 +348,97 @@ def main(argv: list[str]) -> None:
         print(f"MLflow run: {run_id} (evaluate-{name}) in {tracking_uri()}")
 
 
-def _stream_source(args, data_cfg: dict, center: str, seed: int, pairs: int):
-    """(splits, descriptions, shuffle, make_sampler, notes, data label) of the stream splits (no bank)."""
-    from aniformer.synth.bodies import TOPOLOGIES
-    from aniformer.synth.stream import SPLITS, StreamPairs
+def _columns(source: PairSource) -> dict[str, str]:
+    """The splits pairs can be drawn from, name -> description."""
+    return {s: source.splits[s] for s in source.non_empty_splits}
 
-    topology = args.topology or data_cfg.get("topology")
+
+def _stream(args, cfg: DataConfig) -> PairSource:
+    """The checkpoint's stream, on --topology if given."""
+    from aniformer.synth.bodies import TOPOLOGIES
+    from pipeline.data import pair_source
+
+    topology = args.topology or cfg.topology
     if topology not in TOPOLOGIES:
         raise UserError(f"--topology must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
-
-    def make_sampler(window: int, shuffle_mode: str):
-        return StreamPairs(topology, window=window, center=center, seed=seed, eval_pairs=pairs)
-
-    descriptions = {name: split.description for name, split in SPLITS.items()}
-    return list(SPLITS), descriptions, "none", make_sampler, [], f"stream, topology {topology}"
+    return pair_source(dataclasses.replace(cfg, topology=topology), None)
 
 
-def _target_source(args, data_cfg: dict, center: str, seed: int, pairs: int):
-    """(variants as splits, descriptions, shuffle, make_sampler, notes, data label) of ``--targets``."""
-    from aniformer.synth.stream import SPLITS
+def _stream_data(args, cfg: DataConfig, pairs: int, seed: int) -> EvalData:
+    """The stream's splits, made on the fly, and the acceleration error's clips."""
+    from aniformer.evaluate import DEFAULT_CLIP_FRAMES
+    from aniformer.synth.poses import LIBRARY_FRAMES
+
+    source = _stream(args, cfg)
+    clip_frames = DEFAULT_CLIP_FRAMES if args.clip_frames is None else args.clip_frames
+    if clip_frames > LIBRARY_FRAMES:
+        raise UserError(f"--clip-frames must be at most {LIBRARY_FRAMES} (the stream's longest clip), got {clip_frames}")
+    return EvalData(source, pairs, seed, f"stream, topology {source.topology}", _columns(source), clip_frames=clip_frames)
+
+
+def _target_data(args, cfg: DataConfig, pairs: int, seed: int) -> EvalData:
+    """``--targets``: variants of the targets of one stream split, as the columns."""
     from aniformer.synth.variants import DRIVER_FRAMES, VARIANTS
 
-    if data_cfg.get("source") != "stream" or args.bank or args.compare or args.noise:
+    if cfg.source != "stream" or args.bank or args.compare or args.noise:
         raise UserError("--targets scores a stream checkpoint alone: no --bank, --compare or --noise")
-    if args.target_split not in SPLITS:
-        raise UserError(f"--target-split {args.target_split!r}: known splits are {', '.join(SPLITS)}")
+    source = _stream(args, cfg)
+    if args.target_split not in source.splits:
+        raise UserError(f"--target-split {args.target_split!r}: known splits are {', '.join(source.splits)}")
     variants = [v.strip() for v in args.targets.split(",") if v.strip()]
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown or not variants:
         raise UserError(f"--targets: unknown variant(s) {', '.join(unknown) or '(none given)'}; known: {', '.join(VARIANTS)}")
-    splits, descriptions, shuffle, make_sampler, notes, label = _stream_source(args, data_cfg, center, seed, pairs)
-    notes.append(f"Targets of split `{args.target_split}` ({SPLITS[args.target_split].description}); the model and "
-                 "the deformation transfer reach targets of other topologies through aniformer/registration.py, "
-                 "the copy-driver is carried to the target's vertices through the ground-truth correspondence.")
+    notes = [f"Targets of split `{args.target_split}` ({source.splits[args.target_split]}); the model and "
+             "the deformation transfer reach targets of other topologies through aniformer/registration.py, "
+             "the copy-driver is carried to the target's vertices through the ground-truth correspondence."]
     if "foreign_driver" in variants:
         notes.append(f"`foreign_driver`: the driver is registered on its whole {DRIVER_FRAMES}-frame clip "
                      "(aniformer/registration.py: register_clip), and the model slides its window over the clip "
                      "(aniformer/animate.py); every frame is scored.")
-    return variants, VARIANTS, shuffle, make_sampler, notes, label
+    return EvalData(source, pairs, seed, f"stream, topology {source.topology}", {v: VARIANTS[v] for v in variants}, notes)
 
 
-def _bank_source(args, ckpt_path: Path, data_cfg: dict, center: str, seed: int, pairs: int):
-    """(splits, descriptions, shuffle, make_sampler, notes, data label) of a mesh bank's non-empty splits."""
-    from pipeline.data import GENERATION_FIELDS, SPLITS, PairSampler, load_bank, read_manifest
+def _bank_data(args, ckpt_path: Path, cfg: DataConfig, pairs: int, seed: int) -> EvalData:
+    """The splits with pairs of a mesh bank: --bank, else bank/ beside the checkpoint."""
+    from pipeline.data import load_bank, pair_source
 
-    if args.bank:
-        bank_dir = Path(args.bank).expanduser()
-    elif not Path(os.path.expanduser(args.checkpoint)).exists():
-        raise UserError("--checkpoint is an MLflow run id: pass --bank DIR (the mesh bank to evaluate on)")
-    else:
-        bank_dir = ckpt_path.parent / "bank" if ckpt_path.is_file() else ckpt_path / "bank"
-        if not (bank_dir / "manifest.json").is_file():
-            raise UserError(f"no mesh bank beside the checkpoint ({bank_dir}); pass --bank DIR")
-    manifest = read_manifest(bank_dir)
-    known = list(SPLITS)  # the pipeline's order (train, seen, unseen, ...), then any others of the bank
-    all_splits = sorted(manifest.splits, key=lambda s: (known.index(s) if s in known else len(known), s))
-    splits = [s for s in all_splits if manifest.splits[s]["motions"] and manifest.splits[s]["targets"]]
-    empty = [s.strip() for s in (args.splits or "").split(",") if s.strip() in all_splits and s.strip() not in splits]
+    if args.topology:
+        raise UserError("--topology applies to checkpoints trained on a stream (data.source: stream)")
+    bank_dir = _bank_dir(args, ckpt_path)
+    bank = load_bank(bank_dir)
+    source = pair_source(dataclasses.replace(cfg, source="bank"), bank)  # a stream checkpoint too, given --bank
+    named = [s.strip() for s in (args.splits or "").split(",")]
+    empty = [s for s in named if s in source.splits and s not in source.non_empty_splits]
     if empty:
         raise UserError(f"--splits: split(s) {', '.join(empty)} are empty in this bank")
-    made = manifest.config
-    notes = []
-    differs = [k for k in GENERATION_FIELDS if k in data_cfg and k in made and made[k] != data_cfg[k]]
-    if manifest.kind == "synthetic" and differs:
-        notes.append(f"Note: the bank differs from the checkpoint's training data in {', '.join(differs)}; "
-                     "'seen' motions may not be the ones it was trained on.")
-        print(notes[-1], file=sys.stderr)
-    bank = load_bank(bank_dir)
+    return EvalData(source, pairs, seed, f"bank {bank_dir.resolve()}", _columns(source), _bank_notes(cfg, bank.manifest))
 
-    def make_sampler(window: int, shuffle_mode: str):
-        return PairSampler(bank, window=window, shuffle=shuffle_mode, center=center, seed=seed, eval_pairs=pairs)
 
-    descriptions = {s: manifest.splits[s].get("description", "") for s in splits}
-    return splits, descriptions, data_cfg.get("shuffle", "target"), make_sampler, notes, f"bank {bank_dir.resolve()}"
+def _bank_dir(args, ckpt_path: Path) -> Path:
+    """--bank, else bank/ beside the checkpoint file."""
+    if args.bank:
+        return Path(args.bank).expanduser()
+    if not Path(os.path.expanduser(args.checkpoint)).exists():
+        raise UserError("--checkpoint is an MLflow run id: pass --bank DIR (the mesh bank to evaluate on)")
+    bank_dir = ckpt_path.parent / "bank" if ckpt_path.is_file() else ckpt_path / "bank"
+    if not (bank_dir / "manifest.json").is_file():
+        raise UserError(f"no mesh bank beside the checkpoint ({bank_dir}); pass --bank DIR")
+    return bank_dir
+
+
+def _bank_notes(cfg: DataConfig, manifest) -> list[str]:
+    """A note (also on stderr) when a synthetic bank was made with other settings than the checkpoint's data."""
+    from pipeline.data import GENERATION_FIELDS
+
+    made, trained = manifest.config, cfg.generation_dict()
+    differs = [k for k in GENERATION_FIELDS if k in made and made[k] != trained[k]]
+    if manifest.kind != "synthetic" or not differs:
+        return []
+    note = (f"Note: the bank differs from the checkpoint's training data in {', '.join(differs)}; "
+            "'seen' motions may not be the ones it was trained on.")
+    print(note, file=sys.stderr)
+    return [note]
 
 
 def _log_to_mlflow(job: str, args, files: Path, table, sweep, pairs, seed, splits, config, acceleration=None) -> str:

@@ -6,9 +6,9 @@
         --driving samples/walk/driving --out anim/walk
 
 ``--stream TOPOLOGY``: pair ``--pair`` of a split of the on-the-fly test stream
-(``aniformer.synth.stream.SPLITS``) with a ``--frames``-long driving clip: fresh bodies, never
+(``aniformer.synth.stream.STREAM_SPLITS``) with a ``--frames``-long driving clip: fresh bodies, never
 trained on, the motion and orientation of the split, at a nominal 30 fps (``driving/sequence.json``).
-``--bank DIR``: from split SPLIT of the bank (see `pipeline.data.SPLITS`): motion instance `--motion` (the split's
+``--bank DIR``: from split SPLIT of the bank (see `pipeline.data.BANK_SPLITS`): motion instance `--motion` (the split's
 first by default) as performed by its driver -> `OUT/driving/frame_NNNN.obj`; target identity
 `--target` (the split's first by default) at the first frame of another motion -> `OUT/target.obj`;
 that target performing the same motion -> `OUT/ground_truth/frame_NNNN.obj` (what a perfect
@@ -78,18 +78,19 @@ def _write(out: Path, overwrite: bool, driving, truth, target, faces, info: dict
 
 def _export_stream(args, out: Path) -> None:
     from aniformer.synth.bodies import TOPOLOGIES
-    from aniformer.synth.stream import SPLITS, StreamPairs
+    from pipeline.data import DataConfig, pair_source
 
     split = args.split or "locomotion"
     if args.stream not in TOPOLOGIES:
         raise UserError(f"--stream must be one of {', '.join(TOPOLOGIES)}; got {args.stream!r}")
-    if split not in SPLITS:
-        raise UserError(f"--split {split!r}: not a split of the stream ({', '.join(SPLITS)})")
+    source = pair_source(DataConfig(source="stream", topology=args.stream, shuffle="none"), None)
+    if split not in source.splits:
+        raise UserError(f"--split {split!r}: not a split of the stream ({', '.join(source.splits)})")
     if not 2 <= args.frames <= 1000 or args.pair < 0:
         raise UserError(f"--frames must be in [2, 1000] and --pair >= 0; got {args.frames} and {args.pair}")
-    stream = StreamPairs(args.stream, window=args.frames, center="none", seed=args.seed)
+    stream = source.with_settings(window=args.frames, center="none", seed=args.seed)  # a clip, uncentred
     pair = stream.batch(split, 0, [args.pair])
-    info = {"stream": args.stream, "split": split, "description": SPLITS[split].description, "pair": args.pair,
+    info = {"stream": args.stream, "split": split, "description": stream.splits[split], "pair": args.pair,
             "seed": args.seed, "frames": args.frames, "vertices": stream.num_vertices, "fps": 30}
     _write(out, args.overwrite, pair["driving"][0], pair["ground_truth"][0], pair["target"][0], stream.faces, info)
     print(f"exported pair {args.pair} of the stream's {split!r} split ({args.frames} frames, "
@@ -102,11 +103,9 @@ def _export_bank(args, out: Path) -> None:
     args.split = args.split or "unseen"
     bank_dir = Path(args.bank).expanduser().resolve()
     bank = load_bank(bank_dir)
-    splits = bank.manifest.splits
-    if args.split not in splits or not splits[args.split]["motions"] or not splits[args.split]["targets"]:
-        raise UserError(f"--split {args.split!r}: not a non-empty split of the bank "
-                        f"({', '.join(s for s in splits if splits[s]['motions'] and splits[s]['targets'])})")
-    split = splits[args.split]
+    if args.split not in bank.non_empty_splits:
+        raise UserError(f"--split {args.split!r}: not a non-empty split of the bank ({', '.join(bank.non_empty_splits)})")
+    split = bank.manifest.splits[args.split]
     motion = _pick("motion", args.motion, split["motions"], args.split)
     target = _pick("target", args.target, split["targets"], args.split)
     info = bank.manifest.motions[motion]

@@ -103,17 +103,9 @@ def repo_root() -> Path:
 def job_main():
     """`job_main("train")`: jobs/train.py's `main`, loaded once per session, to run in this process
     under `aniformer.cli.run` (a subprocess per case costs seconds of imports)."""
-    import functools
-    import importlib.util
+    import importlib
 
-    @functools.cache
-    def load(name: str):
-        spec = importlib.util.spec_from_file_location(f"{name}_job", ROOT / "jobs" / f"{name}.py")
-        job = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(job)
-        return job.main
-
-    return load
+    return lambda name: importlib.import_module(f"jobs.{name}").main
 
 
 @pytest.fixture(scope="session")

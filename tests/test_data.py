@@ -334,6 +334,24 @@ def test_bank_config_mismatch_is_refused(tiny_bank):
         s.split("validation")
 
 
+def test_pair_source_of_a_bank_names_its_splits_in_the_pipelines_order(tiny_bank, tiny_loaded):
+    import dataclasses
+
+    source = data.pair_source(tiny_cfg(), tiny_bank)  # a directory: loaded and checked against the config
+    assert isinstance(source, data.PairSource) and isinstance(source, data.PairSampler)
+    assert list(source.splits) == list(data.BANK_SPLITS) == source.non_empty_splits
+    assert source.splits["unseen"] == data.BANK_SPLITS["unseen"][2]
+    splits = {**tiny_loaded.manifest.splits, "unseen": {**tiny_loaded.manifest.splits["unseen"], "targets": []},
+              "extra": {"motions": [0], "targets": [0]}}
+    bank = dataclasses.replace(tiny_loaded, manifest=dataclasses.replace(tiny_loaded.manifest, splits=splits))
+    other = data.pair_source(tiny_cfg(topology="notoes_collapse5pc"), bank)  # a Bank in memory: taken as it is
+    assert other.non_empty_splits == [s for s in data.BANK_SPLITS if s != "unseen"] + ["extra"]
+    with pytest.raises(UserError, match="empty"):
+        other.split("unseen")
+    wider = other.with_settings(window=5, shuffle="none")
+    assert wider.bank is bank and (wider.window, wider.shuffle, wider.seed) == (5, "none", other.seed)
+
+
 # ---------------------------------------------------------------------------------------------
 # Pairs through Ray Data / Ray Train
 # ---------------------------------------------------------------------------------------------

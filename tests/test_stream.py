@@ -8,7 +8,7 @@ import torch
 
 from aniformer.synth.bodies import BodyModel
 from aniformer.synth.poses import FAMILIES, sample_windows
-from aniformer.synth.stream import SPLITS, StreamPairs, sample_body_pairs
+from aniformer.synth.stream import STREAM_SPLITS, StreamPairs, sample_body_pairs
 
 TOPOLOGY = "notoes_collapse3pc"
 
@@ -64,11 +64,11 @@ def test_splits_are_seeded_apart_and_bodies_follow_their_distribution():
     mismatch = sample_body_pairs([np.random.default_rng(i) for i in range(50)], "mismatch")
     opposite = (mismatch[:, 0, 2:5] > 0.5) != (mismatch[:, 1, 2:5] > 0.5)  # muscle, weight, height
     assert opposite.all()
-    streams = {s.stream for s in SPLITS.values()}
-    assert streams == {"train", "val", "test"} and SPLITS["train"].stream == "train"
-    assert SPLITS["seen"].stream == SPLITS["unseen"].stream == "val"
-    assert set(SPLITS["heldout_actions"].actions).isdisjoint(SPLITS["train"].actions)
-    assert "kick" in SPLITS["heldout_actions"].families and "kick" not in SPLITS["train"].families
+    streams = {s.stream for s in STREAM_SPLITS.values()}
+    assert streams == {"train", "val", "test"} and STREAM_SPLITS["train"].stream == "train"
+    assert STREAM_SPLITS["seen"].stream == STREAM_SPLITS["unseen"].stream == "val"
+    assert set(STREAM_SPLITS["heldout_actions"].actions).isdisjoint(STREAM_SPLITS["train"].actions)
+    assert "kick" in STREAM_SPLITS["heldout_actions"].families and "kick" not in STREAM_SPLITS["train"].families
 
 
 @pytest.mark.parametrize("family", FAMILIES)
@@ -122,6 +122,19 @@ def test_stream_config_rejects_shuffling_and_unknown_splits(stream):
         DataConfig(source="s3")
     with pytest.raises(UserError, match="unknown split"):
         stream.batch("nope", 0, [0])
+
+
+def test_pair_source_of_a_stream_has_every_split_and_keeps_its_settings():
+    from pipeline.data import DataConfig, PairSource, pair_source
+
+    source = pair_source(DataConfig(source="stream", topology=TOPOLOGY, shuffle="none", seed=4), None)
+    assert isinstance(source, PairSource) and isinstance(source, StreamPairs)
+    assert source.non_empty_splits == list(source.splits) == list(STREAM_SPLITS)
+    assert source.splits["crouch"] == STREAM_SPLITS["crouch"].description
+    clip = source.with_settings(window=8, eval_pairs=2)
+    assert (clip.topology, clip.window, clip.seed, clip.eval_pairs, clip.shuffle) == (TOPOLOGY, 8, 4, 2, "none")
+    with pytest.raises(ValueError, match="never shuffled"):
+        source.with_settings(shuffle="target")
 
 
 @pytest.mark.ray

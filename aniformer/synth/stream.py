@@ -11,7 +11,7 @@ epoch ``e`` of a split is a pure function of ``(seed, split, e, i)``:
 
 Splits are seeded apart: ``train`` from the training seed stream, ``seen``/``unseen`` (the
 validation that picks checkpoints) from a validation stream, and the test splits from a test
-stream, so no test body, window or pair is trained or tuned on. See ``SPLITS``.
+stream, so no test body, window or pair is trained or tuned on. See ``STREAM_SPLITS``.
 
 Batches only vectorise the work (one Anny call per batch); the draws of a pair come from its own
 generators, so a pair does not depend on which batch it is assembled in (Anny's float32 skinning
@@ -56,7 +56,8 @@ class StreamSplit:
     rest_targets: float = REST_TARGET_FRACTION  # fraction of targets at rest, the others in a pose of the split
 
 
-SPLITS: dict[str, StreamSplit] = {
+#: The stream's splits (a bank's are ``pipeline.data.BANK_SPLITS``).
+STREAM_SPLITS: dict[str, StreamSplit] = {
     "train": StreamSplit(TRAIN_FAMILIES, TRAIN_ORIENTATIONS, "broad", "train", "the training distribution"),
     "seen": StreamSplit(TRAIN_FAMILIES, TRAIN_ORIENTATIONS, "mixed", "val",
                         "validation: the training distribution, fresh bodies and windows"),
@@ -78,7 +79,7 @@ SPLITS: dict[str, StreamSplit] = {
                               "test: targets at rest, as characters come (the foreign-topology evaluation)",
                               rest_targets=1.0),
 }
-TEST_SPLITS = tuple(name for name, s in SPLITS.items() if s.stream == "test")
+TEST_SPLITS = tuple(name for name, s in STREAM_SPLITS.items() if s.stream == "test")
 
 
 def _generator(seed: int, *keys: int | str) -> np.random.Generator:
@@ -173,20 +174,27 @@ def centre(vertices: np.ndarray, mode: str) -> np.ndarray:
 
 
 class StreamPairs:
-    """Pairs of the ``SPLITS`` made on demand; the same interface as ``pipeline.data.PairSampler``.
+    """Pairs of the ``STREAM_SPLITS`` made on demand; a ``pipeline.data.PairSource`` like ``PairSampler``.
 
     ``batch(split, epoch, indices)`` returns numpy arrays ``driving (B, T, V, 3)``, ``target
     (B, V, 3)``, ``ground_truth (B, T, V, 3)``, ``target_faces (B, F, 3)`` and int64 ``index``,
     ``epoch``. Picklable and cheap to ship: the Anny model is built on first use in a process.
     """
 
-    shuffle = "none"  # one topology for driver and target: vertex i is the same body point in both
     block_pairs = 64  # pairs per Ray Data block: ~5 ms each to make, so small blocks keep several CPUs busy
 
-    def __init__(self, topology: str, *, window: int = 3, center: str = "mesh", seed: int = 0,
+    def __init__(self, topology: str, *, window: int = 3, shuffle: str = "none", center: str = "mesh", seed: int = 0,
                  pairs_per_epoch: int = 8000, eval_pairs: int = 1000):
-        self.topology, self.window, self.center, self.seed = topology, window, center, seed
+        if shuffle != "none":  # one topology for driver and target: vertex i is the same body point in both
+            raise ValueError(f"a stream's pairs are never shuffled, got shuffle={shuffle!r}")
+        self.topology, self.window, self.shuffle, self.center, self.seed = topology, window, shuffle, center, seed
         self.pairs_per_epoch, self.eval_pairs = pairs_per_epoch, eval_pairs
+
+    def with_settings(self, **settings) -> StreamPairs:
+        """The same stream with other pair settings (window, center, seed, pair counts)."""
+        current = {"window": self.window, "shuffle": self.shuffle, "center": self.center, "seed": self.seed,
+                   "pairs_per_epoch": self.pairs_per_epoch, "eval_pairs": self.eval_pairs}
+        return type(self)(self.topology, **(current | settings))
 
     @property
     def body(self):
@@ -200,12 +208,20 @@ class StreamPairs:
     def num_vertices(self) -> int:
         return self.body.num_vertices
 
+    @property
+    def splits(self) -> dict[str, str]:
+        return {name: split.description for name, split in STREAM_SPLITS.items()}
+
+    @property
+    def non_empty_splits(self) -> list[str]:
+        return list(STREAM_SPLITS)  # every split draws fresh bodies and motion
+
     def split(self, name: str) -> StreamSplit:
         from aniformer.errors import UserError
 
-        if name not in SPLITS:
-            raise UserError(f"unknown split {name!r}; known: {', '.join(SPLITS)}")
-        return SPLITS[name]
+        if name not in STREAM_SPLITS:
+            raise UserError(f"unknown split {name!r}; known: {', '.join(STREAM_SPLITS)}")
+        return STREAM_SPLITS[name]
 
     def default_pairs(self, split: str) -> int:
         return self.pairs_per_epoch if split == "train" else self.eval_pairs

@@ -6,9 +6,11 @@ codec), ``synthetic`` (posing Anny bodies), ``importer`` (mesh folders -> bank),
 ``pairs`` (numpy pairs) and ``ray_data`` (generation and pair datasets on Ray). This package exports
 what the jobs and the trainer use.
 
-A run's pairs come from ``pair_source``: with ``data.source: stream`` (the default configs) every pair
-is made on the fly by ``aniformer.synth.stream.StreamPairs`` inside the Ray Data tasks (fresh bodies,
-smooth motion over the whole pose space; no bank, nothing on disk); with ``data.source: bank`` they
+A run's pairs come from ``pair_source(cfg, bank)``, the one place that chooses where they come from, as
+a ``PairSource`` (its splits and their descriptions, ``non_empty_splits``, ``batch``, ``faces``,
+``num_vertices``): with ``data.source: stream`` (the default configs) every pair is made on the fly by
+``aniformer.synth.stream.StreamPairs`` inside the Ray Data tasks (fresh bodies, smooth motion over the
+whole pose space; no bank, nothing on disk; splits ``STREAM_SPLITS``); with ``data.source: bank`` they
 are assembled from a mesh bank, the format below, which also holds imported mesh sequences
 (DFAUST-like data, ``import_mesh_sequences``).
 
@@ -50,22 +52,22 @@ the paper), ``ground_truth (T, V, 3)`` (the target performing the driving window
 for Ray Train (``ray.train.get_dataset_shard("train").iter_torch_batches(...)``).
 
 Splits (the paper's, plus harder ones): driving identities seen/unseen, motion instances
-seen/unseen, target identities train/test, and held-out action classes; see ``SPLITS``.
+seen/unseen, target identities train/test, and held-out action classes; see ``BANK_SPLITS``.
 """
 
 from pipeline.data.bank import Bank, check_bank_matches, load_bank, read_faces
-from pipeline.data.config import GENERATION_FIELDS, SPLITS, DataConfig, data_config, derive_seed
+from pipeline.data.config import BANK_SPLITS, GENERATION_FIELDS, DataConfig, data_config, derive_seed
 from pipeline.data.importer import import_mesh_sequences
 from pipeline.data.manifest import MANIFEST, SCHEMA_VERSION, Manifest, read_manifest, validate_manifest
-from pipeline.data.pairs import PairSampler, pair_source
+from pipeline.data.pairs import PairSampler, PairSource, pair_source
 from pipeline.data.plan import plan_bank, shard_layout
 from pipeline.data.ray_data import generate_bank, pair_dataset, prepare_bank, quiet_ray_data
 from pipeline.data.shards import shard_bytes
 from pipeline.data.synthetic import generate_shard, motion_of, pose_sequence
 
 __all__ = [
-    "GENERATION_FIELDS", "MANIFEST", "SCHEMA_VERSION", "SPLITS", "Bank", "DataConfig", "Manifest", "PairSampler",
-    "check_bank_matches", "data_config", "derive_seed", "generate_bank", "generate_shard", "import_mesh_sequences",
-    "load_bank", "motion_of", "pair_dataset", "pair_source", "plan_bank", "pose_sequence", "prepare_bank",
-    "quiet_ray_data", "read_faces", "read_manifest", "shard_bytes", "shard_layout", "validate_manifest",
+    "BANK_SPLITS", "GENERATION_FIELDS", "MANIFEST", "SCHEMA_VERSION", "Bank", "DataConfig", "Manifest", "PairSampler",
+    "PairSource", "check_bank_matches", "data_config", "derive_seed", "generate_bank", "generate_shard",
+    "import_mesh_sequences", "load_bank", "motion_of", "pair_dataset", "pair_source", "plan_bank", "pose_sequence",
+    "prepare_bank", "quiet_ray_data", "read_faces", "read_manifest", "shard_bytes", "shard_layout", "validate_manifest",
 ]

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from aniformer.errors import UserError
-from pipeline.data.config import GENERATION_FIELDS, DataConfig
+from pipeline.data.config import BANK_SPLITS, GENERATION_FIELDS, DataConfig
 from pipeline.data.manifest import Manifest, bank_file, read_manifest
 from pipeline.data.shards import check_digest, read_file, read_shard
 
@@ -36,8 +36,6 @@ def read_faces(bank_dir: str | os.PathLike, manifest: Manifest, verify: bool = T
 
 
 @dataclasses.dataclass
-
-
 class Bank:
     """A bank in memory: ``vertices (meshes, V, 3)`` float32 in global row order, plus metadata."""
 
@@ -48,6 +46,19 @@ class Bank:
     @property
     def num_vertices(self) -> int:
         return int(self.vertices.shape[1])
+
+    @property
+    def splits(self) -> dict[str, str]:
+        """Every split of the bank, name -> description: those of ``BANK_SPLITS`` in its order, then any others by name."""
+        table, known = self.manifest.splits, list(BANK_SPLITS)
+        order = sorted(table, key=lambda s: (known.index(s) if s in known else len(known), s))
+        return {s: table[s].get("description", "") for s in order}
+
+    @property
+    def non_empty_splits(self) -> list[str]:
+        """The splits a pair can be drawn from: at least one motion instance and one target identity."""
+        table = self.manifest.splits
+        return [s for s in self.splits if table[s]["motions"] and table[s]["targets"]]
 
     def sequence(self, identity: int, motion: int) -> np.ndarray:
         """``(frames, V, 3)`` of an identity performing a motion instance (a view)."""

@@ -22,8 +22,9 @@ from aniformer.synth.motions import ACTIONS
 SHUFFLE_MODES = ("none", "target", "both")
 SOURCES = ("bank", "stream")  # pairs from a mesh bank on disk, or made on the fly (aniformer.synth.stream)
 
-#: Pair splits: name -> (motion-instance group, target-identity group, description).
-SPLITS: dict[str, tuple[str, str, str]] = {
+#: A bank's pair splits: name -> (motion-instance group, target-identity group, description). The stream's
+#: are ``aniformer.synth.stream.STREAM_SPLITS``.
+BANK_SPLITS: dict[str, tuple[str, str, str]] = {
     "train": ("seen", "train", "seen motion instances of seen driving identities x train targets"),
     "seen": ("seen", "test", "paper's 'seen motions': seen motion instances x unseen (test) targets"),
     "unseen": (

@@ -1,12 +1,13 @@
 """Pairs (numpy, no Ray): (driving window, target, ground truth) assembled from a bank in memory, or
 made on the fly by ``aniformer.synth.stream.StreamPairs``; pair ``i`` of epoch ``e`` of a split is a pure
-function of (seed, split, e, i)."""
+function of (seed, split, e, i). ``pair_source`` is the one place that chooses between them."""
 
 from __future__ import annotations
 
 import dataclasses
 import os
 from collections.abc import Sequence
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -14,15 +15,55 @@ from aniformer.config import from_dict
 from aniformer.errors import UserError
 from aniformer.synth.stream import StreamPairs
 from pipeline.data.bank import Bank, check_bank_matches, load_bank
-from pipeline.data.config import CENTER_MODES, SHUFFLE_MODES, DataConfig, check_choice, derive_seed
+from pipeline.data.config import CENTER_MODES, PAIR_FIELDS, SHUFFLE_MODES, DataConfig, check_choice, derive_seed
 
 
-def pair_source(cfg: DataConfig, bank_dir: str | os.PathLike | None):
-    """The pairs of a run: a ``StreamPairs`` (``source: stream``) or a ``PairSampler`` over the bank."""
+@runtime_checkable
+class PairSource(Protocol):
+    """What every job reads pairs through (`pair_source`): a `PairSampler` over a bank, or a ``StreamPairs``.
+    A new data source implements this and is returned by `pair_source` under a new ``data.source``."""
+
+    window: int  # T, the frames of a driving window
+    shuffle: str  # vertex shuffling of the target and ground truth: none | target | both
+
+    @property
+    def splits(self) -> dict[str, str]:
+        """Every split, name -> description, in the pipeline's order."""
+
+    @property
+    def non_empty_splits(self) -> list[str]:
+        """The splits pairs can be drawn from."""
+
+    @property
+    def faces(self) -> np.ndarray:
+        """``(F, 3)`` int64: the faces of every mesh, unshuffled."""
+
+    @property
+    def num_vertices(self) -> int:
+        """V, the vertices of every mesh."""
+
+    def split(self, name: str) -> object:
+        """What a split is drawn from; `UserError` if it is unknown or empty."""
+
+    def default_pairs(self, split: str) -> int:
+        """Pairs per epoch of ``split`` when a caller asks for none."""
+
+    def batch(self, split: str, epoch: int, indices: Sequence[int] | np.ndarray, n: int | None = None) -> dict:
+        """Pairs ``indices`` of epoch ``epoch`` of ``split`` (of ``n``): a pair batch (docs/architecture.md)."""
+
+    def with_settings(self, **settings) -> PairSource:
+        """The same data with other pair settings (``PAIR_FIELDS``), as an evaluation draws each model's pairs."""
+
+
+def pair_source(cfg: DataConfig, bank: Bank | str | os.PathLike | None) -> PairSource:
+    """The pairs of ``cfg``: made on the fly (``source: stream``; ``bank`` unused) or drawn from ``bank``, a
+    directory (loaded and checked against ``cfg``) or a `Bank` in memory (taken as it is: an evaluation may
+    score a checkpoint on another bank than its own)."""
     if cfg.source == "stream":
-        return StreamPairs(cfg.topology, window=cfg.window, center=cfg.center, seed=cfg.seed,
-                           pairs_per_epoch=cfg.pairs_per_epoch, eval_pairs=cfg.eval_pairs)
-    return PairSampler.from_dir(bank_dir, cfg)
+        return StreamPairs(cfg.topology, **cfg.pair_settings())
+    if isinstance(bank, Bank):
+        return PairSampler(bank, **cfg.pair_settings())
+    return PairSampler.from_dir(bank, cfg)
 
 
 class PairSampler:
@@ -68,6 +109,18 @@ class PairSampler:
     @property
     def num_vertices(self) -> int:
         return self.bank.num_vertices
+
+    @property
+    def splits(self) -> dict[str, str]:
+        return self.bank.splits
+
+    @property
+    def non_empty_splits(self) -> list[str]:
+        return self.bank.non_empty_splits
+
+    def with_settings(self, **settings) -> PairSampler:
+        """A sampler of the same bank in memory with other pair settings (``PAIR_FIELDS``)."""
+        return type(self)(self.bank, **({k: getattr(self, k) for k in PAIR_FIELDS} | settings))
 
     def _extents(self, chunk: int = 4096) -> None:
         """Per-mesh bounding boxes (low, high), so centring a pair costs a subtraction."""
@@ -115,7 +168,7 @@ class PairSampler:
             raise UserError(f"unknown split {name!r}; known: {', '.join(splits)}")
         motions = np.asarray(splits[name]["motions"], np.int64)
         targets = np.asarray(splits[name]["targets"], np.int64)
-        if len(motions) == 0 or len(targets) == 0:
+        if name not in self.non_empty_splits:
             raise UserError(f"split {name!r} is empty in this bank ({len(motions)} motions, {len(targets)} targets)")
         return motions, targets
 

@@ -6,15 +6,15 @@ from __future__ import annotations
 import math
 
 from aniformer.synth.bodies import TOPOLOGIES, sample_identities
-from pipeline.data.config import EXECUTION_FIELDS, SPLITS, DataConfig, assign_motions, derive_seed
+from pipeline.data.config import BANK_SPLITS, EXECUTION_FIELDS, DataConfig, assign_motions, derive_seed
 from pipeline.data.manifest import Manifest, new_manifest
 
 
 def split_table(identities: list[dict], motions: list[dict]) -> dict:
-    """``SPLITS`` resolved: split name -> its motion ids, target identity ids and description."""
+    """``BANK_SPLITS`` resolved: split name -> its motion ids, target identity ids and description."""
     groups_t = {g: [i["id"] for i in identities if i["role"] == "target" and i["split"] == g] for g in ("train", "test")}
     splits = {}
-    for name, (motion_group, target_group, description) in SPLITS.items():
+    for name, (motion_group, target_group, description) in BANK_SPLITS.items():
         splits[name] = {
             "motions": [m["id"] for m in motions if m["split"] == motion_group],
             "targets": groups_t[target_group],

@@ -18,7 +18,6 @@ from tqdm import tqdm
 
 from aniformer.errors import UserError
 from aniformer.files import staged_output_dir
-from aniformer.synth.stream import StreamPairs
 from pipeline.data.bank import check_bank_matches, read_faces
 from pipeline.data.config import DataConfig
 from pipeline.data.manifest import (
@@ -32,7 +31,7 @@ from pipeline.data.manifest import (
     shard_name,
     write_file,
 )
-from pipeline.data.pairs import PairSampler, pair_source
+from pipeline.data.pairs import PairSampler, PairSource, pair_source
 from pipeline.data.plan import plan_bank, shard_layout
 from pipeline.data.synthetic import body_model, generate_shard
 
@@ -138,13 +137,13 @@ def generate_bank(cfg: DataConfig, out_dir: str | os.PathLike, *, workers: int |
 
 def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool) -> tuple[Manifest | None, np.ndarray]:
     """(manifest, faces) of the bank a job trains on: checked against ``cfg`` if it exists, else
-    generated there when ``generate`` (the job's own ``OUT/bank``), else a `UserError`. A stream
-    needs no bank: (None, the topology's faces).
+    generated there when ``generate`` (the job's own ``OUT/bank``), else a `UserError`. Any other source
+    (the stream) needs no bank: (None, its faces).
 
     Generation is staged (``aniformer.files.staged_output_dir``): the bank appears complete or not at all, and a
     killed job's staging directory is removed by the next one. A bank directory holding only what an
     unstaged generation leaves (shards, faces, no manifest) is taken as incomplete and regenerated."""
-    if cfg.source == "stream":
+    if cfg.source != "bank":
         return None, pair_source(cfg, bank_dir).faces
     bank_dir = Path(bank_dir)
     if (bank_dir / MANIFEST).is_file():
@@ -184,7 +183,7 @@ def _assemble(batch: dict, sampler_ref: list, split: str, n: int, first_epoch: i
 
 
 def pair_dataset(
-    bank: str | os.PathLike | PairSampler | StreamPairs,
+    bank: str | os.PathLike | PairSource,
     split: str = "train",
     cfg: DataConfig | None = None,
     *,
@@ -206,7 +205,7 @@ def pair_dataset(
     it as ``datasets={"train": ds}`` and read ``get_dataset_shard("train").iter_torch_batches(...)``;
     one pass over the dataset covers all ``epochs`` (use the ``epoch`` column or count steps).
 
-    ``bank`` is a bank directory or a pair sampler (``pair_source``); a ``StreamPairs`` makes every
+    ``bank`` is a bank directory or a ``PairSource`` (``pair_source``); a ``StreamPairs`` makes every
     pair on the fly in the Ray Data tasks, which then scale with the CPUs Ray Data gets, and has
     only the ``index`` and ``epoch`` id columns.
 
