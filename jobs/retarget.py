@@ -28,10 +28,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from aniformer.animation_run import AnimateOptions
 from aniformer.cli import ArgumentParser, run
 from aniformer.errors import UserError
 from aniformer.files import atomic_path, lock_output, natural_key, protect_inputs, releases_locks
 from aniformer.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, UNITS, UP_AXES
+from jobs import animate
 
 COLUMNS = ("target", "clip", "status", "frames", "seconds", "fit_mm", "self_check")
 
@@ -83,12 +85,14 @@ def library(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, str]]:
     return targets, clips
 
 
-def pair_argv(args: argparse.Namespace, target: str, clip: str, out: Path) -> list[str]:
-    """jobs/animate.py's arguments for one pair: what `animate.py` would be run with for it alone."""
+def pair_options(args: argparse.Namespace, target: str, clip: str, out: Path) -> AnimateOptions:
+    """jobs/animate.py's options for one pair: what `animate.py` would be run with for it alone, read by its parser
+    (so with its defaults)."""
     argv = ["--checkpoint", args.checkpoint, "--target", target, "--driving", clip, "--out", str(out), "--no-progress",
             "--unit", args.unit, "--up", args.up, "--max-vertices", str(args.max_vertices),
             "--max-frames", str(args.max_frames)]
-    return argv + ["--rig", "--bone-names", args.bone_names] * args.rig + ["--force"] * args.force
+    argv += ["--rig", "--bone-names", args.bone_names] * args.rig + ["--force"] * args.force
+    return AnimateOptions.from_args(animate.parse_args(argv))
 
 
 def write_summary(path: Path, rows: list[dict]) -> None:
@@ -146,7 +150,6 @@ def main(argv: list[str]) -> None:
     targets, clips = library(args)
     out = Path(args.out).expanduser().resolve()
     from aniformer.checkpoint import model_from_checkpoint, resolve_pretrained  # torch: after the arguments
-    from jobs.animate import local_checkpoint
 
     checkpoint = resolve_pretrained(args.checkpoint)
     protect_inputs(out, {"--targets": args.targets, "--clips": args.clips, "--checkpoint": checkpoint})
@@ -154,7 +157,7 @@ def main(argv: list[str]) -> None:
         raise UserError(f"--out {out} exists and is not a directory")
     lock_output(out)  # one job per output; a rerun resumes in it
     with tempfile.TemporaryDirectory(prefix="aniformer-retarget-") as scratch:
-        local = local_checkpoint(checkpoint, Path(scratch))
+        local = animate.local_checkpoint(checkpoint, Path(scratch))
         model, state = model_from_checkpoint(local)  # a bad checkpoint: one line before Ray starts
         blob = local.read_bytes()
     registers = getattr(model.config, "output", "absolute") != "absolute"
@@ -174,7 +177,7 @@ def main(argv: list[str]) -> None:
             if (pair_out / "animation.json").is_file():  # complete: a pair's folder appears whole or not at all
                 rows[target, clip] = {"target": target, "clip": clip, **pair_row(pair_out, "ok")}
             else:
-                todo.append(Pair(target, clip, pair_argv(args, target_path, clip_path, pair_out)))
+                todo.append(Pair(target, clip, pair_out, pair_options(args, target_path, clip_path, pair_out)))
     print(f"retarget {len(targets)} targets x {len(clips)} clips into {out}: {len(rows)} pairs complete already, "
           f"{len(todo)} to do", flush=True)
     started = time.perf_counter()

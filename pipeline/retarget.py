@@ -5,9 +5,9 @@
 - `register_target` / `register_clip_task` (tasks): a target of another topology than the model runs on is
   registered once per topology, a clip of a foreign topology once; every pair that needs it gets the
   same `ObjectRef` (jobs/animate.py would register them again for every pair).
-- `Animator` (actor): loads the checkpoint once, runs jobs/animate.py's `infer` for each pair it is sent.
-- `write_pair` (task): jobs/animate.py's `write_animation` into ``OUT/<target stem>/<clip>/``, staged and
-  renamed into place, in parallel with the next pairs' inference.
+- `Animator` (actor): loads the checkpoint once, runs `aniformer.animation_run.infer` for each pair it is sent.
+- `write_pair` (task): `aniformer.animation_outputs.write_animation` into ``OUT/<target stem>/<clip>/``, staged
+  and renamed into place, in parallel with the next pairs' inference.
 
 A worker killed mid-task costs only its tasks, retried (`MAX_RETRIES`); a killed actor is restarted and
 its calls retried. A pair whose task raises (bad input, a failed registration) fails alone: its error
@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 import ray
+
+from aniformer.animation_run import AnimateOptions
 
 MAX_RETRIES = 3  # a task whose worker died is run again this many times (never one that raised)
 
@@ -66,8 +68,8 @@ class Refused:
 @ray.remote(num_returns=2, max_retries=MAX_RETRIES)
 def load_target(path: str, up: str, unit: str, max_vertices: int):
     """(its Anny topology or None, the `Mesh`)."""
+    from aniformer.animation_run import anny_topology, input_axis
     from aniformer.mesh import load_mesh, to_z_up
-    from jobs.animate import anny_topology, input_axis
 
     vertices, faces = load_mesh(path, max_vertices=max_vertices, unit=unit)
     axis = input_axis(up, Path(path), vertices[None], faces)
@@ -79,9 +81,9 @@ def load_target(path: str, up: str, unit: str, max_vertices: int):
 def load_clip(path: str, up: str, unit: str, max_vertices: int, max_frames: int, trained_topology: str):
     """({"frames", "anny": its Anny topology or None, "topology": the one the model runs on for it}, the `Clip`)."""
     from aniformer.animate import driving_files, driving_fps, load_driving
+    from aniformer.animation_run import anny_topology, input_axis
     from aniformer.errors import UserError
     from aniformer.mesh import to_z_up
-    from jobs.animate import anny_topology, input_axis
 
     files = driving_files(path)
     if len(files) > max_frames:
@@ -90,7 +92,7 @@ def load_clip(path: str, up: str, unit: str, max_vertices: int, max_frames: int,
     axis = input_axis(up, files[0], driving, faces)
     driving = to_z_up(driving, axis[0])
     anny = anny_topology(driving[0], faces)
-    # the topology the model runs on for this clip, as jobs/animate.py's model_inputs chooses it
+    # the topology the model runs on for this clip, as aniformer.animation_run.model_inputs chooses it
     info = {"frames": len(driving), "anny": anny, "topology": anny or trained_topology}
     return info, Clip(path, driving, faces, driving_fps(files) or 30.0, axis)
 
@@ -137,53 +139,48 @@ class Animator:
             self.model, self.state = model_from_checkpoint(file.name)
         self.device = resolve_device("auto")
 
-    def animate(self, checkpoint: list[ray.ObjectRef], argv: list[str], target: Mesh, clip: Clip, target_fit,
+    def animate(self, checkpoint: list[ray.ObjectRef], options: AnimateOptions, target: Mesh, clip: Clip, target_fit,
                 driver_fit):
-        """jobs/animate.py's `infer` for one pair (``argv``: its animate arguments) with the shared
+        """`aniformer.animation_run.infer` for one pair (``options``: its animate options) with the shared
         registrations: (the inference tuple, seconds, window), or `Refused`. ``checkpoint``: [its bytes' ref],
         fetched at the first call only."""
         import copy
 
-        from jobs.animate import check_glb_size, infer, parse_args
+        from aniformer.animation_run import check_glb_size, infer
 
         if self.model is None:
             self._load(ray.get(checkpoint[0]))
         target_fit, driver_fit = copy.deepcopy((target_fit, driver_fit))  # writable arrays (see `Writable`)
-        args = parse_args(argv)
-        check_glb_size(args, len(clip.driving), target.vertices, target.faces)
+        check_glb_size(options, len(clip.driving), target.vertices, target.faces)
         registered = {role: fit for role, fit in (("target", target_fit), ("driver", driver_fit)) if fit is not None}
         seconds = {}
         began = time.perf_counter()
-        inference = infer(args, self.model, self.state, clip.driving, clip.faces, target.vertices, target.faces,
+        inference = infer(options, self.model, self.state, clip.driving, clip.faces, target.vertices, target.faces,
                           self.device, seconds, registered)
         seconds["inference"] = round(time.perf_counter() - began, 3)
         trust = inference[5]
-        if not trust.ok and not args.force:
+        if not trust.ok and not options.force:
             return Refused(trust.reason())
         return inference, seconds, self.model.config.window
 
 
 @ray.remote(max_retries=MAX_RETRIES)
-def write_pair(argv: list[str], state: dict, target: Mesh, clip: Clip, animated) -> dict:
-    """Write one pair's outputs (jobs/animate.py's `write_animation`); its summary row."""
-    from jobs.animate import parse_args
-
-    args = parse_args(argv)
-    out = Path(args.out)
+def write_pair(options: AnimateOptions, out: Path, state: dict, target: Mesh, clip: Clip, animated) -> dict:
+    """Write one pair's outputs into ``out`` (`aniformer.animation_outputs.write_animation`); its summary row."""
     if isinstance(animated, Refused):
         return {"status": "refused", "self_check": animated.reason}
     if (out / "animation.json").is_file():  # a retry after the attempt that wrote it died
         return pair_row(out, "ok")
     import copy
 
-    from jobs.animate import write_animation
+    from aniformer.animation_outputs import write_animation
 
     inference, seconds, window = animated
     registrations = copy.deepcopy(inference[4])  # writable arrays for the rig's fit (see `Writable`)
     inference = (*inference[:4], registrations, *inference[5:])
     began = time.perf_counter()
     name = f"{Path(target.path).stem}_{Path(clip.path).name}"
-    write_animation(out, args, state, window, name, clip.fps, clip.driving, clip.faces, target.vertices,
+    write_animation(out, options, state, window, name, clip.fps, clip.driving, clip.faces, target.vertices,
                     target.faces, {"target": target.axis, "driver": clip.axis}, inference, seconds)
     return pair_row(out, "ok", seconds["inference"] + time.perf_counter() - began)
 
@@ -217,7 +214,8 @@ def error_line(error: BaseException) -> str:
 class Pair:
     target: str  # the target's file stem
     clip: str  # the clip's folder name
-    argv: list[str]  # jobs/animate.py's arguments for this pair alone
+    out: Path  # OUT/<target stem>/<clip>/
+    options: AnimateOptions  # jobs/animate.py's options for this pair alone
 
 
 def schedule(pairs: list[Pair], targets: dict[str, str], clips: dict[str, str], options: dict, checkpoint: bytes,
@@ -272,9 +270,9 @@ def schedule(pairs: list[Pair], targets: dict[str, str], clips: dict[str, str], 
     for k, (pair, target_fit, driver_fit) in enumerate(ready + waiting):
         target, clip = target_refs[pair.target][1], clip_refs[pair.clip][1]
         # the checkpoint's ref in a list: fetched by the actor at its first pair, not sent with every call
-        animated = animators[k % actors].animate.remote([checkpoint_ref], pair.argv, target, clip, target_fit,
+        animated = animators[k % actors].animate.remote([checkpoint_ref], pair.options, target, clip, target_fit,
                                                         driver_fit)
-        finals[write_pair.remote(pair.argv, state_ref, target, clip, animated)] = pair
+        finals[write_pair.remote(pair.options, pair.out, state_ref, target, clip, animated)] = pair
     while finals or reports:
         done, _ = ray.wait([*finals, *reports], num_returns=1)
         ref = done[0]

@@ -1,0 +1,114 @@
+"""What an animation run writes (no Ray, no MLflow): the inferred frames (`aniformer.animation_run.infer`) placed
+in the world, then frames/*.obj, animation.glb, preview.gif, animation.json and with ``--rig`` rigged.glb and
+motion.bvh, staged into the output directory (`write_animation`, for jobs/animate.py and pipeline/retarget.py).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from aniformer.animation_run import AnimateOptions, anny_topology, timed
+from aniformer.files import staged_output_dir
+from aniformer.mesh import UNITS
+
+
+def rig_inputs(options: AnimateOptions, state: dict, target, target_faces, registrations: dict):
+    """(the target's vertices on an Anny topology, that topology, where each target vertex lies on it or None)
+    for ``aniformer.rig.build_rig``: the registration's, else the target itself when it is an Anny mesh, else
+    a registration made here (a model of absolute output registers nothing)."""
+    from aniformer.registration import Correspondence
+
+    if "target" in registrations:
+        fit = registrations["target"]
+        return fit.template, fit.topology, fit.mesh_on_template
+    topology = anny_topology(target, target_faces)
+    if topology is not None:
+        return target, topology, None
+    fit = Correspondence(target, target_faces,
+                         options.template or (state["config"].get("data") or {}).get("topology"))
+    return fit.template, fit.topology, fit.mesh_on_template
+
+
+def write_rig(tmp: Path, options: AnimateOptions, summary: dict, target, target_faces, world, rig_source) -> None:
+    """rigged.glb and motion.bvh of the animated ``world`` frames; the rig's size and fit into ``summary``."""
+    from aniformer.bvh import write_bvh
+    from aniformer.glb import write_rigged_glb
+    from aniformer.rig import build_rig, fit_rig
+
+    rig, motion = fit_rig(build_rig(target, *rig_source, bone_names=options.bone_names), target, world)
+    write_rigged_glb(tmp / "rigged.glb", target, target_faces, rig, motion, fps=summary["fps"], name=summary["name"],
+                     extras={"checkpoint": str(options.checkpoint), "driving": str(options.driving)})
+    write_bvh(tmp / "motion.bvh", rig, motion, summary["fps"], UNITS[options.unit])
+    summary["rig"] = {"joints": len(rig.names), "residual_m": round(motion.residual, 6)}
+
+
+def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, driving_faces, local, translation,
+                  target, target_faces, rig_source) -> None:
+    """frames/*.obj, animation.glb, preview.gif, animation.json and with ``--rig`` rigged.glb and motion.bvh (of
+    ``rig_source``: ``rig_inputs``), staged: `out` appears complete or not at all. Each one's time goes into
+    ``summary["seconds"]``."""
+    from tqdm import tqdm
+
+    from aniformer.animate import write_obj
+    from aniformer.glb import write_glb
+    from aniformer.mesh import center_bbox, from_z_up
+
+    seconds = summary["seconds"]
+    world = local if translation is None else local + translation[:, None]
+    fps, name = summary["fps"], summary["name"]
+    with staged_output_dir(out, options.overwrite) as tmp:
+        digits = max(4, len(str(len(local) - 1)))
+        (tmp / "frames").mkdir()
+        in_target_axes = from_z_up(world, summary["up"]["target"]["axis"]) / UNITS[options.unit]
+        with timed(seconds, "write OBJ"):
+            for k, vertices in enumerate(tqdm(in_target_axes, unit="obj", desc="write OBJ",
+                                              disable=options.no_progress, file=sys.stderr)):
+                write_obj(tmp / "frames" / f"frame_{k:0{digits}d}.obj", vertices, target_faces)
+        if not options.no_glb:
+            with timed(seconds, "write GLB"):
+                write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
+                          frames_per_mesh=options.frames_per_mesh,
+                          extras={"checkpoint": str(options.checkpoint), "driving": str(options.driving)})
+        if options.rig:
+            with timed(seconds, "rig"):
+                write_rig(tmp, options, summary, target, target_faces, world, rig_source)
+        if options.preview_frames:
+            from aniformer.render import render_animation_gif
+
+            shown = center_bbox(driving) if options.center else driving
+            with tqdm(total=min(options.preview_frames, len(local)), unit="frame", desc="preview",
+                      disable=options.no_progress, file=sys.stderr) as bar, timed(seconds, "preview"):
+                render_animation_gif([("driver", shown, driving_faces), ("result", world, target_faces)],
+                                     tmp / "preview.gif", fps=fps, max_frames=options.preview_frames,
+                                     progress=bar.update)
+        (tmp / "animation.json").write_text(json.dumps(summary, indent=2) + "\n")
+
+
+def write_animation(out: Path, options: AnimateOptions, state: dict, window: int, name: str, fps: float, driving,
+                    driving_faces, target, target_faces, axes: dict, inference: tuple, seconds: dict) -> dict:
+    """Place the inferred frames (``inference``: what `infer` returns) in the world, then `write_outputs` into
+    ``out`` with their animation.json record (returned)."""
+    from aniformer.animate import root_motion
+    from aniformer.mesh import center_bbox
+
+    result, combine, total, input_center, registrations, trust, scale = inference
+    local = center_bbox(result)
+    translation = None if options.center else root_motion(driving, local, scale)
+    summary = {
+        "checkpoint": str(options.checkpoint), "target": str(options.target), "driving": str(options.driving),
+        "name": name, "frames": len(result), "fps": fps, "unit": options.unit,
+        "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
+        "window": window, "combine": combine, "windows": total, "input_center": input_center,
+        "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template)}
+                       for role, fit in registrations.items()},
+        "up": {role: {"axis": axis, "why": why} for role, (axis, why) in axes.items()},
+        "trust": trust.to_dict(),
+        "output_centred": options.center,
+        "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
+        "seconds": seconds,
+    }
+    rig_source = rig_inputs(options, state, target, target_faces, registrations) if options.rig else None
+    write_outputs(out, options, summary, driving, driving_faces, local, translation, target, target_faces, rig_source)
+    return summary
