@@ -45,7 +45,8 @@ import trimesh
 
 from aniformer.errors import MeshError, UserError
 from aniformer.files import atomic_path, natural_key
-from aniformer.mesh import CENTER_MODES, DEFAULT_MAX_VERTICES, MESH_SUFFIXES, center_bbox, load_mesh
+from aniformer.geometry import CENTER_MODES, center_bbox
+from aniformer.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, load_mesh
 
 COMBINE_RULES = ("mean", "center")
 # Estimated inference times beyond which `animate_sequence` warns, and refuses unless `force`.

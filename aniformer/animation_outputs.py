@@ -52,8 +52,8 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
     from tqdm import tqdm
 
     from aniformer.animate import write_obj
+    from aniformer.geometry import center_bbox, from_z_up
     from aniformer.glb import write_glb
-    from aniformer.mesh import center_bbox, from_z_up
 
     seconds = summary["seconds"]
     world = local if translation is None else local + translation[:, None]
@@ -91,7 +91,7 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, window: int
     """Place the inferred frames (``inference``: what `infer` returns) in the world, then `write_outputs` into
     ``out`` with their animation.json record (returned)."""
     from aniformer.animate import root_motion
-    from aniformer.mesh import center_bbox
+    from aniformer.geometry import center_bbox
 
     result, combine, total, input_center, registrations, trust, scale = inference
     local = center_bbox(result)

@@ -232,7 +232,7 @@ def animate_files(options: AnimateOptions, out: Path, device, load_model: Callab
 
     from aniformer.animate import load_driving
     from aniformer.animation_outputs import write_animation  # it imports this module
-    from aniformer.mesh import to_z_up
+    from aniformer.geometry import to_z_up
 
     start = time.perf_counter()
     files, target, target_faces, fps, name = load_inputs(options)

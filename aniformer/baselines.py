@@ -19,7 +19,7 @@ from einops import rearrange
 from torch import nn
 
 from aniformer.config import Section
-from aniformer.mesh import center_bbox
+from aniformer.geometry import center_bbox
 from aniformer.model import AniFormer, AniFormerConfig, FeatureExtractor, SPAdaINResBlock, run_block
 
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from aniformer.mesh import center_bbox
+from aniformer.geometry import center_bbox
 from aniformer.metrics import PMD_SCALE, pmd_per_frame
 
 Predict = Callable[[torch.Tensor, torch.Tensor, torch.Tensor | None], torch.Tensor]

@@ -55,7 +55,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.checkpoint import checkpoint
 
 from aniformer.config import Section
-from aniformer.mesh import center_bbox
+from aniformer.geometry import center_bbox
 from aniformer.transfer import deformation_transfer
 
 ATTENTIONS = ("self", "cross")

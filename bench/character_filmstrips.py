@@ -22,7 +22,7 @@ import numpy as np
 import trimesh
 
 from aniformer.animate import driving_files, load_driving, write_obj
-from aniformer.mesh import center_bbox, from_z_up, to_z_up
+from aniformer.geometry import center_bbox, from_z_up, to_z_up
 from aniformer.metrics import PMD_SCALE
 from aniformer.render import render_filmstrip
 from aniformer.synth.stream import StreamPairs

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 
 from aniformer.animate import driving_files, load_driving
-from aniformer.mesh import center_bbox, load_mesh
+from aniformer.geometry import center_bbox
+from aniformer.mesh import load_mesh
 from aniformer.metrics import PMD_SCALE, pmd
 from aniformer.render import render_filmstrip
 

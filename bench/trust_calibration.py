@@ -22,7 +22,7 @@ import torch
 
 from aniformer.checkpoint import PRETRAINED, model_from_checkpoint
 from aniformer.evaluate import model_contender
-from aniformer.mesh import center_bbox
+from aniformer.geometry import center_bbox
 from aniformer.metrics import PMD_SCALE
 from aniformer.registration import Correspondence
 from aniformer.synth.stream import StreamPairs

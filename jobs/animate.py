@@ -43,8 +43,9 @@ from aniformer.animate import FPS_SIDECARS
 from aniformer.animation_run import AnimateOptions, animate_files, check_flags
 from aniformer.cli import ArgumentParser, resolve_device, run
 from aniformer.files import claim_output, releases_locks
+from aniformer.geometry import UP_AXES
 from aniformer.glb import FRAMES_PER_MESH, MAX_MORPH_TARGETS
-from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS, UP_AXES
+from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:

@@ -32,7 +32,8 @@ from aniformer.animation_run import AnimateOptions
 from aniformer.cli import ArgumentParser, run
 from aniformer.errors import UserError
 from aniformer.files import atomic_path, lock_output, natural_key, protect_inputs, releases_locks
-from aniformer.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, UNITS, UP_AXES
+from aniformer.geometry import UP_AXES
+from aniformer.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, UNITS
 from jobs import animate
 
 COLUMNS = ("target", "clip", "status", "frames", "seconds", "fit_mm", "self_check")

@@ -85,7 +85,7 @@ def signature(model):
 
 def input_example(model, topology: str) -> dict[str, np.ndarray]:
     """One window of the checkpoint's Anny topology: a body at rest driving another body, each centred."""
-    from aniformer.mesh import center_bbox
+    from aniformer.geometry import center_bbox
     from aniformer.synth.bodies import BodyModel, sample_identities
 
     body = BodyModel(topology)

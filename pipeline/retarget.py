@@ -69,7 +69,8 @@ class Refused:
 def load_target(path: str, up: str, unit: str, max_vertices: int):
     """(its Anny topology or None, the `Mesh`)."""
     from aniformer.animation_run import anny_topology, input_axis
-    from aniformer.mesh import load_mesh, to_z_up
+    from aniformer.geometry import to_z_up
+    from aniformer.mesh import load_mesh
 
     vertices, faces = load_mesh(path, max_vertices=max_vertices, unit=unit)
     axis = input_axis(up, Path(path), vertices[None], faces)
@@ -83,7 +84,7 @@ def load_clip(path: str, up: str, unit: str, max_vertices: int, max_frames: int,
     from aniformer.animate import driving_files, driving_fps, load_driving
     from aniformer.animation_run import anny_topology, input_axis
     from aniformer.errors import UserError
-    from aniformer.mesh import to_z_up
+    from aniformer.geometry import to_z_up
 
     files = driving_files(path)
     if len(files) > max_frames:

@@ -41,8 +41,8 @@ from aniformer.checkpoint import save_checkpoint
 from aniformer.cli import run
 from aniformer.errors import MeshError, UserError
 from aniformer.files import natural_key
+from aniformer.geometry import center_bbox
 from aniformer.glb import MAX_MORPH_TARGETS, mesh_chunks, read_glb, to_gltf_axes, write_glb
-from aniformer.mesh import center_bbox
 from aniformer.model import AniFormer, AniFormerConfig
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -215,7 +215,7 @@ def test_ground_truth_is_anny_target_shape_with_driving_pose(tiny_loaded, one_to
     count, so the bank poses one whole clip per call on one thread; the reference here does the same
     and slices the window (with two threads, 55 % of the coordinates differed in the last bit on a
     Xeon of 2026-12-02)."""
-    from aniformer.mesh import center_bbox
+    from aniformer.geometry import center_bbox
     from aniformer.synth.bodies import BodyModel
     from aniformer.synth.motions import sample_motion
 
@@ -282,7 +282,7 @@ def _triangles(vertices: np.ndarray, faces: np.ndarray) -> set:
 
 @pytest.mark.parametrize("mode", ["target", "both"])
 def test_shuffling_keeps_faces_consistent_and_target_aligned(tiny_loaded, mode):
-    from aniformer.mesh import shuffle_vertices
+    from aniformer.geometry import shuffle_vertices
 
     plain = sampler(tiny_loaded, shuffle="none").batch("seen", 0, np.arange(4))
     mixed = sampler(tiny_loaded, shuffle=mode).batch("seen", 0, np.arange(4))
@@ -296,7 +296,7 @@ def test_shuffling_keeps_faces_consistent_and_target_aligned(tiny_loaded, mode):
         assert _triangles(mixed["target"][k], tf) == _triangles(plain["target"][k], faces)
         for t in range(mixed["ground_truth"].shape[1]):
             assert _triangles(mixed["ground_truth"][k, t], tf) == _triangles(plain["ground_truth"][k, t], faces)
-        # target and ground truth share one permutation, the one aniformer.mesh.shuffle_vertices applies
+        # target and ground truth share one permutation, the one aniformer.geometry.shuffle_vertices applies
         rng = np.random.default_rng(int(table["perm_seed"][k]))
         perm = rng.permutation(V)
         v, f = shuffle_vertices(plain["target"][k], faces, perm)

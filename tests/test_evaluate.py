@@ -31,7 +31,7 @@ from aniformer.evaluate import (
     table_csv,
     table_markdown,
 )
-from aniformer.mesh import center_bbox
+from aniformer.geometry import center_bbox
 from aniformer.model import AniFormer, AniFormerConfig
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -5,7 +5,8 @@ import pytest
 import trimesh
 
 from aniformer.errors import MeshError
-from aniformer.mesh import center_bbox, load_mesh, save_mesh, shuffle_vertices, validate_mesh
+from aniformer.geometry import center_bbox, shuffle_vertices
+from aniformer.mesh import load_mesh, save_mesh, validate_mesh
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from aniformer.checkpoint import PRETRAINED, load_checkpoint, model_from_checkpoint
-from aniformer.mesh import center_bbox
+from aniformer.geometry import center_bbox
 from aniformer.metrics import PMD_SCALE
 
 MODEL_TOPOLOGY = "notoes_collapse3pc"
@@ -84,7 +84,8 @@ def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main,
     import trimesh
 
     from aniformer.cli import run
-    from aniformer.mesh import from_z_up, load_mesh
+    from aniformer.geometry import from_z_up
+    from aniformer.mesh import load_mesh
     from aniformer.synth.variants import remesh
 
     samples, anim = tmp_path / "clip", tmp_path / "anim"
@@ -169,7 +170,7 @@ def test_self_check_trusts_a_good_registration_and_refuses_injected_failures(str
 def test_up_axis_is_the_one_the_body_stands_along():
     """detect_up: a standing body says z, the same body in y-up axes says y, a body lying along x keeps the
     format's convention."""
-    from aniformer.mesh import from_z_up
+    from aniformer.geometry import from_z_up
     from aniformer.registration import detect_up
     from aniformer.synth.stream import _body_model
 

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from aniformer.geometry import from_z_up
 from aniformer.glb import read_document, to_gltf_axes
-from aniformer.mesh import from_z_up, load_mesh
+from aniformer.mesh import load_mesh
 
 MODEL_TOPOLOGY = "notoes_collapse3pc"
 FRAMES = 8

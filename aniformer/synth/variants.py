@@ -50,7 +50,8 @@ import scipy.spatial.transform
 import torch
 import trimesh
 
-from aniformer.mesh import center_bbox, from_z_up, load_mesh, shuffle_vertices, to_z_up
+from aniformer.geometry import center_bbox, from_z_up, shuffle_vertices, to_z_up
+from aniformer.mesh import load_mesh
 from aniformer.registration import SurfacePoints, closest_points
 from aniformer.synth.poses import sample_windows
 from aniformer.synth.stream import StreamPairs, _body_model, _choose, _generator, pose_pairs

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from aniformer.config import Section, from_dict
-from aniformer.mesh import CENTER_MODES
+from aniformer.geometry import CENTER_MODES
 from aniformer.synth.bodies import TOPOLOGIES
 from aniformer.synth.motions import ACTIONS
 

@@ -142,7 +142,7 @@ class PairSampler:
 
     def _centre(self, rows: np.ndarray) -> np.ndarray:
         """Offsets to subtract from meshes ``rows (B, T)``, shaped ``(B, T, 1, 3)``: each mesh's
-        bounding-box centre (``center="mesh"``, as ``aniformer.mesh.center_bbox``) or the whole
+        bounding-box centre (``center="mesh"``, as ``aniformer.geometry.center_bbox``) or the whole
         window's (``"window"``)."""
         low, high = self.low[rows], self.high[rows]
         if self.center == "window":
