@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
@@ -75,11 +76,19 @@ def copy_driver(driving: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 MODELS = {"aniformer": (AniFormer, AniFormerConfig), "npt": (NPT, NPTConfig)}
+ModelConfig = AniFormerConfig | NPTConfig
 
 
-def build_model(name: str, config: dict) -> nn.Module:
-    """A model from its registry name and config dict (as stored in checkpoints and MLflow)."""
+def model_config(name: str, section: Mapping) -> ModelConfig:
+    """The typed config of registry model ``name`` from its mapping (a checkpoint's or MLflow's, without "name")."""
     if name not in MODELS:
         raise ValueError(f"unknown model {name!r}; choose one of {sorted(MODELS)}")
-    model_cls, config_cls = MODELS[name]
-    return model_cls(config_cls(**config))
+    return MODELS[name][1](**section)
+
+
+def build_model(config: ModelConfig) -> nn.Module:
+    """The model a typed config describes."""
+    model_cls = next((model for model, kind in MODELS.values() if type(config) is kind), None)
+    if model_cls is None:
+        raise TypeError(f"not a model config: {type(config).__name__}")
+    return model_cls(config)

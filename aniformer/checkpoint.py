@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from aniformer.baselines import build_model
+from aniformer.baselines import build_model, model_config
 from aniformer.errors import UserError
 from aniformer.files import atomic_path
 
@@ -91,7 +91,7 @@ def _planned_tensors(path: Path, name: str, section: dict) -> dict[str, torch.Si
     allocated, whatever the widths)."""
     try:
         with torch.device("meta"):
-            model = build_model(name, section)
+            model = build_model(model_config(name, section))
     except (ValueError, TypeError, RuntimeError) as e:
         raise UserError(f"{path}: checkpoint's model config is invalid ({' '.join(str(e).split())[:300]})") from None
     return {key: tensor.shape for key, tensor in model.state_dict().items()}
@@ -130,7 +130,7 @@ def model_from_checkpoint(path: str | os.PathLike) -> tuple[nn.Module, dict]:
     name = section.pop("name", "aniformer")
     check_weights(path, name, section, state["model"])
     try:
-        model = build_model(name, section)
+        model = build_model(model_config(name, section))
         model.load_state_dict(state["model"])
     except (ValueError, TypeError, RuntimeError) as e:
         detail = " ".join(str(e).split())  # load_state_dict names the mismatched tensors on later lines

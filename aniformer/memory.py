@@ -307,15 +307,15 @@ def parameter_count(model_name: str, config) -> int:
     from aniformer.baselines import build_model
 
     with torch.device("meta"):
-        model = build_model(model_name, config.to_dict())
+        model = build_model(_config(model_name, config))
     return sum(p.numel() for p in model.parameters())
 
 
 def _config(model_name: str, config):
     if isinstance(config, dict):
-        from aniformer.baselines import MODELS
+        from aniformer.baselines import model_config
 
-        config = MODELS[model_name][1](**{k: v for k, v in config.items() if k != "name"})
+        config = model_config(model_name, {k: v for k, v in config.items() if k != "name"})
     return config
 
 

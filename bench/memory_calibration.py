@@ -89,7 +89,7 @@ def child(spec: dict) -> dict:
 
     import torch
 
-    from aniformer.baselines import build_model
+    from aniformer.baselines import build_model, model_config
     from aniformer.losses import LossConfig, loss_terms
 
     device = torch.device(spec["device"])
@@ -97,9 +97,9 @@ def child(spec: dict) -> dict:
         torch.set_num_threads(spec.get("threads", 1))
     dtype = {"bf16": torch.bfloat16, "fp16": torch.float16}.get(spec["precision"])
 
-    def steps(model_config: dict, V: int, B: int, n: int) -> None:
+    def steps(section: dict, V: int, B: int, n: int) -> None:
         torch.manual_seed(0)
-        model = build_model(spec.get("model_name", "aniformer"), model_config).to(device)
+        model = build_model(model_config(spec.get("model_name", "aniformer"), section)).to(device)
         model.activation_checkpointing = spec.get("activation_checkpointing", False)
         optimizer = torch.optim.Adam(model.parameters(), lr=5e-5)
         scaler = torch.amp.GradScaler(device.type, enabled=spec["precision"] == "fp16")

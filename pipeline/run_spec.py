@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from aniformer.baselines import MODELS
+from aniformer.baselines import MODELS, ModelConfig
 from aniformer.config import Section, from_dict
 from aniformer.errors import UserError
 from aniformer.losses import LossConfig
@@ -69,7 +69,7 @@ class RunSpec:
 
     data: DataConfig
     model_name: str
-    model: object  # AniFormerConfig | NPTConfig
+    model: ModelConfig
     loss: LossConfig
     train: TrainConfig
 

@@ -105,7 +105,7 @@ def restore(spec: RunSpec) -> Training:
     restart, or a re-run job), then wrap the model for DDP and move it to this worker's device."""
     cfg = spec.train
     torch.manual_seed(cfg.seed)  # same initial weights on every rank (DDP also broadcasts them)
-    model = build_model(spec.model_name, spec.model.to_dict())
+    model = build_model(spec.model)
     model.activation_checkpointing = cfg.activation_checkpointing
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, list(cfg.milestones), cfg.lr_decay)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from aniformer.baselines import build_model
+from aniformer.baselines import build_model, model_config
 from aniformer.losses import LossConfig, loss_terms
 from aniformer.memory import count_activations, parameter_count, plan_batch, predict_step_memory
 
@@ -17,7 +17,7 @@ def saved_activation_bytes(name: str, config: dict, B: int, V1: int, V2: int, pr
                            activation_checkpointing: bool = False) -> int:
     """Bytes of the distinct storages autograd saves for backward (forward + loss), parameters excluded."""
     torch.manual_seed(0)
-    model = build_model(name, config)
+    model = build_model(model_config(name, config))
     model.activation_checkpointing = activation_checkpointing
     T = model.config.window
     driving, target = torch.randn(B, T, V1, 3), torch.randn(B, V2, 3)
@@ -56,7 +56,7 @@ def saved_activation_bytes(name: str, config: dict, B: int, V1: int, V2: int, pr
     ("npt", dict(channels=[65, 33], extractor_channels=[16, 64], window=3), 2, 400, 400),
 ])
 def test_activation_count_matches_autograd(name, config, B, V1, V2, precision):
-    cfg = build_model(name, config).config
+    cfg = model_config(name, config)
     predicted, _ = count_activations(name, cfg, B, (V1, V2), precision)
     actual = saved_activation_bytes(name, config, B, V1, V2, precision)
     assert predicted == pytest.approx(actual, rel=0.06), (predicted / 2**20, actual / 2**20)
@@ -75,7 +75,7 @@ def test_activation_checkpointing_saves_a_fraction(name, config):
 
 def test_parameters_are_counted_exactly_without_allocating():
     for name, config in [("aniformer", dict(TINY, window=3)), ("aniformer", {}), ("npt", {})]:
-        model = build_model(name, config)
+        model = build_model(model_config(name, config))
         assert parameter_count(name, model.config) == sum(p.numel() for p in model.parameters())
 
 

@@ -10,7 +10,7 @@ import torch
 import yaml
 
 from aniformer import AniFormer, AniFormerConfig
-from aniformer.baselines import NPT, NPTConfig, build_model, copy_driver
+from aniformer.baselines import NPT, NPTConfig, build_model, copy_driver, model_config
 
 TINY = dict(channels=(32, 16), extractor_channels=(8, 16, 32), heads=4)
 SWITCHES = [
@@ -132,9 +132,9 @@ def test_npt_and_copy_driver():
     torch.testing.assert_close(copied.amax(2) + copied.amin(2), torch.zeros(1, 3, 3), atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="equal vertex counts"):
         copy_driver(driving, torch.randn(1, 21, 3))
-    assert isinstance(build_model("aniformer", TINY), AniFormer)
+    assert isinstance(build_model(model_config("aniformer", TINY)), AniFormer)
     with pytest.raises(ValueError, match="unknown model"):
-        build_model("limp", {})
+        model_config("limp", {})
 
 
 MEMORY_PROBE = textwrap.dedent("""
@@ -230,7 +230,7 @@ def test_activation_checkpointing_keeps_outputs_and_gradients(name, config):
     """The execution switch of train.activation_checkpointing: same outputs and gradients; inference
     (no grad) takes the plain path. What it saves: tests/test_memory.py."""
     torch.manual_seed(0)
-    model = build_model(name, config)
+    model = build_model(model_config(name, config))
     open_gates(model)
     driving, target = torch.randn(2, 3, 50, 3), torch.randn(2, 50, 3)
     plain_out, plain_grads = _gradients(model, driving, target)
@@ -270,7 +270,7 @@ def test_compiled_model_matches_eager(repo_root):
 
     config = load_config(repo_root / "configs/tiny.yaml")
     torch.manual_seed(0)
-    model = build_model(config["model"]["name"], {k: v for k, v in config["model"].items() if k != "name"})
+    model = build_model(model_config(config["model"]["name"], {k: v for k, v in config["model"].items() if k != "name"}))
     open_gates(model)
     B, T = config["train"]["batch_size"], config["data"]["window"]
     driving, target = torch.randn(B, T, 369, 3) * 0.3, torch.randn(B, 369, 3) * 0.3
