@@ -22,9 +22,9 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from aniformer.baselines import build_model, model_config
 from aniformer.errors import UserError
 from aniformer.files import atomic_path
+from aniformer.models import build_model, model_config
 
 #: The model shipped with the project (docs/model_card.md), what ``--checkpoint pretrained`` names: package data of
 #: `aniformer` (pyproject.toml), so an installed package has it too. pip installs packages as plain files, so it

@@ -54,7 +54,7 @@ class Contender:
 
 
 def model_contender(name: str, model: torch.nn.Module, device: str | torch.device = "cpu") -> Contender:
-    """Wrap a model built by `aniformer.baselines.build_model` (eval mode, no grad, fp32 output)."""
+    """Wrap a model built by `aniformer.models.build_model` (eval mode, no grad, fp32 output)."""
     device = torch.device(device)
     model = model.to(device).eval()
 
@@ -66,7 +66,7 @@ def model_contender(name: str, model: torch.nn.Module, device: str | torch.devic
 
 
 def copy_driver_contender(window: int, name: str = COPY_DRIVER) -> Contender:
-    from aniformer.baselines import copy_driver
+    from aniformer.models import copy_driver
 
     return Contender(name, lambda driving, target, faces: copy_driver(driving, target), window, slice(None),
                      needs_correspondence=True)

@@ -304,7 +304,7 @@ def _checkpointed_peak(stages: list[_Stage], compute_bytes: int) -> int:
 
 def parameter_count(model_name: str, config) -> int:
     """Exact, from the model built on the meta device (nothing is allocated)."""
-    from aniformer.baselines import build_model
+    from aniformer.models import build_model
 
     with torch.device("meta"):
         model = build_model(_config(model_name, config))
@@ -313,7 +313,7 @@ def parameter_count(model_name: str, config) -> int:
 
 def _config(model_name: str, config):
     if isinstance(config, dict):
-        from aniformer.baselines import model_config
+        from aniformer.models import model_config
 
         config = model_config(model_name, {k: v for k, v in config.items() if k != "name"})
     return config

@@ -89,8 +89,8 @@ def child(spec: dict) -> dict:
 
     import torch
 
-    from aniformer.baselines import build_model, model_config
     from aniformer.losses import LossConfig, loss_terms
+    from aniformer.models import build_model, model_config
 
     device = torch.device(spec["device"])
     if device.type == "cpu":

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from aniformer.baselines import MODELS, ModelConfig
 from aniformer.config import Section, from_dict
 from aniformer.errors import UserError
 from aniformer.losses import LossConfig
 from aniformer.model import ATTENTION_KERNELS
+from aniformer.models import MODELS, ModelConfig
 from pipeline.data import DataConfig, data_config
 
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")

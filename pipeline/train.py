@@ -32,13 +32,13 @@ from ray.data import DataContext, ExecutionOptions
 from ray.train import CheckpointConfig, FailureConfig, LoggingConfig, RunConfig, ScalingConfig
 from ray.train.torch import TorchTrainer
 
-from aniformer.baselines import build_model
 from aniformer.checkpoint import FILENAME, save_checkpoint, unwrap
 from aniformer.errors import UserError, root_cause
 from aniformer.files import atomic_path
 from aniformer.losses import loss_terms
 from aniformer.metrics import PMD_SCALE, pmd
 from aniformer.model import attention_kernels
+from aniformer.models import build_model
 from pipeline.checkpoints import SCORE, best_checkpoint, restore_state, resume_epoch
 from pipeline.console import Console, EpochBar, epoch_line, quiet_ray, show
 from pipeline.data import pair_dataset, pair_source, quiet_ray_data

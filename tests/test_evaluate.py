@@ -12,7 +12,6 @@ import pytest
 import torch
 import yaml
 
-from aniformer.baselines import NPT, NPTConfig
 from aniformer.checkpoint import model_from_checkpoint, save_checkpoint
 from aniformer.cli import run
 from aniformer.errors import UserError
@@ -33,6 +32,7 @@ from aniformer.evaluate import (
 )
 from aniformer.geometry import center_bbox
 from aniformer.model import AniFormer, AniFormerConfig
+from aniformer.models import NPT, NPTConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_DATA = yaml.safe_load((ROOT / "configs" / "tiny.yaml").read_text())["data"]

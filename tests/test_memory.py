@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from aniformer.baselines import build_model, model_config
 from aniformer.losses import LossConfig, loss_terms
 from aniformer.memory import count_activations, parameter_count, plan_batch, predict_step_memory
+from aniformer.models import build_model, model_config
 
 TINY = {"channels": [64, 32], "extractor_channels": [16, 64], "heads": 8}
 

@@ -10,7 +10,7 @@ import torch
 import yaml
 
 from aniformer import AniFormer, AniFormerConfig
-from aniformer.baselines import NPT, NPTConfig, build_model, copy_driver, model_config
+from aniformer.models import NPT, NPTConfig, build_model, copy_driver, model_config
 
 TINY = dict(channels=(32, 16), extractor_channels=(8, 16, 32), heads=4)
 SWITCHES = [

@@ -130,8 +130,8 @@ def test_a_missing_registered_model_is_one_line(in_store, tmp_path, capsys, job,
 @pytest.mark.parametrize("kind", ["absolute", "regression", "npt"])
 def test_the_signature_fits_every_kind_of_model(kind):
     """Models without faces take no faces input; a regression head returns one frame per window."""
-    from aniformer.baselines import NPT, NPTConfig
     from aniformer.model import AniFormer, AniFormerConfig
+    from aniformer.models import NPT, NPTConfig
     from pipeline.registry import signature
 
     model = (NPT(NPTConfig(extractor_channels=(8, 16), channels=(19, 16), window=3)) if kind == "npt" else

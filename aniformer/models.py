@@ -1,5 +1,5 @@
-"""Baselines of the paper's Table 1/2, all with the AniFormer interface
-`model(driving (B, T, V1, 3), target (B, V2, 3)) -> (B, T, V2, 3)`.
+"""Every model a config can name (`MODELS`, `build_model`): AniFormer (aniformer/model.py) and the baselines of
+the paper's Table 1/2, all with the AniFormer interface `model(driving (B, T, V1, 3), target (B, V2, 3)) -> (B, T, V2, 3)`.
 
 - NPT: Wang et al., "Neural Pose Transfer by Spatially Adaptive Instance Normalization", CVPR 2020.
   PointNet pose encoder; its per-vertex features concatenated with the identity (target)
