@@ -42,7 +42,6 @@ checkpointed or not); the factor there is headroom for what the caching allocato
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import torch
@@ -349,41 +348,3 @@ def predict_step_memory(model_name: str, config, *, vertices: int | tuple[int, i
         activations=activations, workspace=workspace, inputs=inputs,
         allocator_factor=ALLOCATOR_FACTOR[allocator_kind or allocator(kind)], overhead=int(PROCESS_OVERHEAD_GB[kind] * GiB),
     )
-
-
-@dataclass(frozen=True)
-class BatchPlan:
-    """The memory gate's decision for one config: run as asked, with a smaller batch, or not at all."""
-
-    status: str  # "ok" | "adjusted_memory" | "skipped_memory"
-    batch_size: int  # per-worker micro-batch to run
-    grad_accumulation: int  # optimiser step every k micro-batches (keeps the effective batch)
-    requested_gb: float  # predicted per-worker peak at the requested batch
-    predicted_gb: float  # predicted per-worker peak of what will run (of batch 1 when skipped)
-    limit_gb: float
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-
-def plan_batch(model_name: str, config, *, vertices, batch: int, grad_accumulation: int = 1,
-               limit_gb: float | None, **kwargs) -> BatchPlan:
-    """Halve the batch (doubling gradient accumulation) until the predicted peak fits `limit_gb`.
-
-    "ok" if the requested batch fits (or there is no limit), "adjusted_memory" if a smaller one
-    does, "skipped_memory" if not even batch 1 does. Nothing is allocated to find out.
-    """
-    def predict(b: int) -> float:
-        return predict_step_memory(model_name, config, vertices=vertices, batch=b, **kwargs).total_gb
-
-    requested = predict(batch)
-    if limit_gb is None or requested <= limit_gb:
-        return BatchPlan("ok", batch, grad_accumulation, requested, requested, limit_gb or math.inf)
-    b = batch
-    while b > 1:
-        b = max(1, b // 2)
-        predicted = predict(b)
-        if predicted <= limit_gb:
-            return BatchPlan("adjusted_memory", b, grad_accumulation * math.ceil(batch / b), requested,
-                             predicted, limit_gb)
-    return BatchPlan("skipped_memory", 1, grad_accumulation * batch, requested, predict(1), limit_gb)

@@ -7,7 +7,7 @@ PMD (`pmd_unseen`, per epoch). Every trial trains with `pipeline.train.train_fun
 jobs/train.py, in a TorchTrainer run inside a function trainable (Ray 2.60 Train V2 cannot be
 passed to a Tuner directly), whose epoch reports reach Tune through `TuneReportCallback`.
 
-Memory gate: before a trial builds anything, `aniformer.memory.plan_batch` predicts its
+Memory gate (`pipeline.memory_gate`): before a trial builds anything, `aniformer.memory` predicts its
 per-worker peak. Over `memory_limit_gb` the batch is halved, with gradient accumulation keeping
 the effective batch, until it fits (`adjusted_memory`); if it cannot fit (not even batch 1, or it
 would need more than `max_grad_accumulation`) the trial is reported as `skipped_memory` without
@@ -26,7 +26,6 @@ TorchTrainer resumes from its last checkpoint under `OUT/trials/<sweep>-<trial_i
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -43,9 +42,9 @@ from ray.tune.search.basic_variant import BasicVariantGenerator
 from ray.util.placement_group import PlacementGroup, placement_group_table, remove_placement_group
 
 from aniformer.config import from_dict
-from aniformer.memory import plan_batch
 from pipeline.console import Console
-from pipeline.run_spec import RunSpec, resolve_precision
+from pipeline.memory_gate import gate
+from pipeline.run_spec import RunSpec
 from pipeline.sweep_config import SweepConfig, apply_params, complete_points, search_space
 from pipeline.tracking import find_job_run, start_job_run, tracking_uri
 from pipeline.train import build_trainer, train_func
@@ -55,21 +54,6 @@ SUMMARY_FIELDS = ("trial_id", "status", "memory_decision", "rec", "motion", "app
                   "batch_size", "run_batch_size", "grad_accumulation", "predicted_memory_gb",
                   "requested_memory_gb", "measured_memory_gb", "memory_limit_gb", "epochs", "best_pmd_unseen",
                   "mlflow_run_id")
-
-
-def gate(spec, vertices: int, faces: int | None, sweep: SweepConfig):
-    """The memory decision (`aniformer.memory.BatchPlan`) for one trial's RunSpec."""
-    cfg = spec.train
-    device = "cuda" if cfg.use_gpu else "cpu"
-    # The driver cannot see the workers' GPUs; bf16 and fp16 take the same memory.
-    precision = resolve_precision(cfg.precision, device, bf16_supported=True)
-    plan = plan_batch(spec.model_name, spec.model, vertices=vertices, batch=cfg.batch_size,
-                      grad_accumulation=cfg.grad_accumulation, limit_gb=sweep.memory_limit_gb,
-                      precision=precision, device=device, workers=cfg.workers, faces=faces,
-                      activation_checkpointing=cfg.activation_checkpointing)
-    if plan.status == "adjusted_memory" and plan.grad_accumulation > sweep.max_grad_accumulation:
-        plan = dataclasses.replace(plan, status="skipped_memory")
-    return plan
 
 
 def plan_trial(base: dict, params: dict, vertices: int, faces: int | None, sweep: SweepConfig):

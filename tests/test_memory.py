@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from aniformer.losses import LossConfig, loss_terms
-from aniformer.memory import count_activations, parameter_count, plan_batch, predict_step_memory
+from aniformer.memory import count_activations, parameter_count, predict_step_memory
 from aniformer.models import build_model, model_config
+from pipeline.memory_gate import plan_batch
 
 TINY = {"channels": [64, 32], "extractor_channels": [16, 64], "heads": 8}
 

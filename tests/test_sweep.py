@@ -61,9 +61,9 @@ def test_points_are_completed_for_the_search():
 
 
 def test_gate_adjusts_then_skips_oversized_trials():
+    from pipeline.memory_gate import gate
     from pipeline.run_spec import RunSpec
     from pipeline.sweep_config import apply_params, split_config
-    from pipeline.tune import gate
 
     base, sweep = split_config(load_config(CONFIG, ["sweep.memory_limit_gb=1.2"]))
     def plan(**params):
