@@ -6,13 +6,12 @@ runs `infer` in an actor and `aniformer.animation_outputs.write_animation` in a 
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import functools
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 from aniformer.errors import UserError
@@ -46,11 +45,6 @@ class AnimateOptions:
     overwrite: bool
     force: bool
     no_progress: bool
-
-    @classmethod
-    def from_args(cls, args: argparse.Namespace) -> AnimateOptions:
-        """The options of jobs/animate.py's parsed arguments."""
-        return cls(**{field.name: getattr(args, field.name) for field in fields(cls)})
 
 
 def check_flags(options: AnimateOptions) -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import os
 import sys
 import unicodedata
@@ -143,6 +144,11 @@ class RunJobParser(ArgumentParser):
         name = job_name(args.name or out.name)
         lock_output(out)
         return out, name, Path(args.bank).expanduser().resolve() if args.bank else out / "bank"
+
+
+def options_from(kind: type, args: argparse.Namespace):
+    """The options dataclass ``kind`` of a job's parsed arguments: each field from the flag of its name."""
+    return kind(**{field.name: getattr(args, field.name) for field in dataclasses.fields(kind)})
 
 
 def job_name(name: str) -> str:

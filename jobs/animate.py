@@ -41,7 +41,7 @@ from pathlib import Path
 
 from aniformer.animate import FPS_SIDECARS
 from aniformer.animation_run import AnimateOptions, animate_files, check_flags
-from aniformer.cli import ArgumentParser, resolve_device, run
+from aniformer.cli import ArgumentParser, options_from, resolve_device, run
 from aniformer.files import claim_output, releases_locks
 from aniformer.geometry import UP_AXES
 from aniformer.glb import FRAMES_PER_MESH, MAX_MORPH_TARGETS
@@ -121,7 +121,7 @@ def load_model(checkpoint: str):
 @releases_locks
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
-    options = AnimateOptions.from_args(args)
+    options = options_from(AnimateOptions, args)
     check_flags(options)
     out = Path(args.out).expanduser().resolve()
     from aniformer.checkpoint import resolve_pretrained  # torch: after the arguments are checked

@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from aniformer.cli import ArgumentParser, resolve_device, run
+from aniformer.cli import ArgumentParser, options_from, resolve_device, run
 from aniformer.files import claim_output, releases_locks
 from pipeline.evaluation import EvaluateOptions, check_flags, evaluate_checkpoint, refusals_line
 
@@ -69,7 +69,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 @releases_locks
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
-    options = EvaluateOptions.from_args(args)
+    options = options_from(EvaluateOptions, args)
     levels, compare = check_flags(options)
     out = Path(args.out).expanduser().resolve()
     from aniformer.checkpoint import resolve_pretrained  # torch: after the arguments are checked

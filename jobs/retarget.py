@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 from aniformer.animation_run import AnimateOptions
-from aniformer.cli import ArgumentParser, run
+from aniformer.cli import ArgumentParser, options_from, run
 from aniformer.errors import UserError
 from aniformer.files import atomic_path, lock_output, natural_key, protect_inputs, releases_locks
 from aniformer.geometry import UP_AXES
@@ -93,7 +93,7 @@ def pair_options(args: argparse.Namespace, target: str, clip: str, out: Path) ->
             "--unit", args.unit, "--up", args.up, "--max-vertices", str(args.max_vertices),
             "--max-frames", str(args.max_frames)]
     argv += ["--rig", "--bone-names", args.bone_names] * args.rig + ["--force"] * args.force
-    return AnimateOptions.from_args(animate.parse_args(argv))
+    return options_from(AnimateOptions, animate.parse_args(argv))
 
 
 def write_summary(path: Path, rows: list[dict]) -> None:

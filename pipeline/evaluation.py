@@ -3,13 +3,12 @@ data `pipeline.evaluation_data.choose_data` picks, the results written and logge
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 from aniformer.errors import UserError
@@ -43,11 +42,6 @@ class EvaluateOptions:
     no_mlflow: bool
     overwrite: bool
     no_progress: bool
-
-    @classmethod
-    def from_args(cls, args: argparse.Namespace) -> EvaluateOptions:
-        """The options of jobs/evaluate.py's parsed arguments."""
-        return cls(**{field.name: getattr(args, field.name) for field in fields(cls)})
 
 
 @dataclass(frozen=True)
