@@ -91,8 +91,8 @@ def run_animate(checkout: Path, target: Path, clip: Path, out: Path, rig: bool =
     if status != 0:
         raise RuntimeError(f"{' '.join(command)} failed:\n{output[-2000:]}")
     summary = json.loads((out / "animation.json").read_text())
-    sizes = {f"{name}_mb": round((out / name).stat().st_size / 2**20, 3)
-             for name in ("animation.glb", "rigged.glb", "motion.bvh") if rig}
+    written = ("animation.glb", "rigged.glb", "motion.bvh") if rig else ()
+    sizes = {f"{name}_mb": round((out / name).stat().st_size / 2**20, 3) for name in written}
     return {"wall_s": round(wall, 2), "peak_rss_gb": round(usage.ru_maxrss / 2**20, 3),
             "frames": summary["frames"], "seconds": summary["seconds"], **summary.get("rig", {}), **sizes}
 
