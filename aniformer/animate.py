@@ -1,4 +1,4 @@
-"""Animate a target mesh with a driving sequence of any length (the GLB writer is ``aniformer.glb``).
+"""Animate a target mesh with a driving sequence of any length (the GLB writer is ``aniformer.io.glb``).
 
 Sliding window
 --------------
@@ -44,9 +44,9 @@ import torch
 import trimesh
 
 from aniformer.errors import MeshError, UserError
-from aniformer.files import atomic_path, natural_key
 from aniformer.geometry import CENTER_MODES, center_bbox
-from aniformer.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, load_mesh
+from aniformer.io.files import atomic_path, natural_key
+from aniformer.io.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, load_mesh
 
 COMBINE_RULES = ("mean", "center")
 # Estimated inference times beyond which `animate_sequence` warns, and refuses unless `force`.

@@ -10,8 +10,8 @@ import sys
 from pathlib import Path
 
 from aniformer.animation_run import AnimateOptions, anny_topology, timed
-from aniformer.files import staged_output_dir
-from aniformer.mesh import UNITS
+from aniformer.cli.outputs import staged_output_dir
+from aniformer.io.mesh import UNITS
 
 
 def rig_inputs(options: AnimateOptions, state: dict, target, target_faces, registrations: dict):
@@ -33,8 +33,8 @@ def rig_inputs(options: AnimateOptions, state: dict, target, target_faces, regis
 
 def write_rig(tmp: Path, options: AnimateOptions, summary: dict, target, target_faces, world, rig_source) -> None:
     """rigged.glb and motion.bvh of the animated ``world`` frames; the rig's size and fit into ``summary``."""
-    from aniformer.bvh import write_bvh
-    from aniformer.glb import write_rigged_glb
+    from aniformer.io.bvh import write_bvh
+    from aniformer.io.glb import write_rigged_glb
     from aniformer.rig import build_rig, fit_rig
 
     rig, motion = fit_rig(build_rig(target, *rig_source, bone_names=options.bone_names), target, world)
@@ -53,7 +53,7 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
 
     from aniformer.animate import write_obj
     from aniformer.geometry import center_bbox, from_z_up
-    from aniformer.glb import write_glb
+    from aniformer.io.glb import write_glb
 
     seconds = summary["seconds"]
     world = local if translation is None else local + translation[:, None]
@@ -75,7 +75,7 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
             with timed(seconds, "rig"):
                 write_rig(tmp, options, summary, target, target_faces, world, rig_source)
         if options.preview_frames:
-            from aniformer.render import render_animation_gif
+            from aniformer.io.render import render_animation_gif
 
             shown = center_bbox(driving) if options.center else driving
             with tqdm(total=min(options.preview_frames, len(local)), unit="frame", desc="preview",

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from aniformer.errors import UserError
-from aniformer.glb import MAX_GLB_BYTES, MAX_MORPH_TARGETS
-from aniformer.mesh import GLTF_SUFFIXES
+from aniformer.io.glb import MAX_GLB_BYTES, MAX_MORPH_TARGETS
+from aniformer.io.mesh import GLTF_SUFFIXES
 
 
 @dataclass(frozen=True)
@@ -79,7 +79,7 @@ def load_inputs(options: AnimateOptions):
     """(driving frame files, target vertices and faces, fps, name), all checked before any work (and before
     anything is written): frame count, the target mesh, the size the GLB would have."""
     from aniformer.animate import driving_files, driving_fps
-    from aniformer.mesh import load_mesh
+    from aniformer.io.mesh import load_mesh
 
     files = driving_files(options.driving)
     if len(files) > options.max_frames:
@@ -94,7 +94,7 @@ def load_inputs(options: AnimateOptions):
 
 def check_glb_size(options: AnimateOptions, frames: int, target, target_faces) -> None:
     """`UserError` when animation.glb would be more than glTF clients load (and ``--no-glb`` is not given)."""
-    from aniformer.glb import glb_size
+    from aniformer.io.glb import glb_size
 
     size = glb_size(frames, len(target), len(target_faces), options.frames_per_mesh)
     if size > MAX_GLB_BYTES and not options.no_glb:

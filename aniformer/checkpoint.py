@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from aniformer.errors import UserError
-from aniformer.files import atomic_path
+from aniformer.io.files import atomic_path
 from aniformer.models import build_model, model_config
 
 #: The model shipped with the project (docs/model_card.md), what ``--checkpoint pretrained`` names: package data of

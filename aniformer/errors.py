@@ -1,5 +1,5 @@
 """The errors a user can fix, and the root cause of any error. Jobs report a `UserError` as one line with exit
-status 2 (`aniformer.cli.run`); the one line of an error from Ray, MLflow or the network names its `root_cause`."""
+status 2 (`aniformer.cli.exits.run`); the one line of an error from Ray, MLflow or the network names its `root_cause`."""
 
 
 class UserError(Exception):

@@ -1,5 +1,5 @@
 """Array geometry with no file formats: the project's axes (z up) against a file's, bounding-box centring and
-vertex reordering; numpy (``center_bbox`` also torch). The model core uses it; ``aniformer.mesh`` reads and
+vertex reordering; numpy (``center_bbox`` also torch). The model core uses it; ``aniformer.io.mesh`` reads and
 writes the files."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ UP_AXES = ("z", "y")  # the axis a file's bodies stand along: z (Anny, Blender's
 
 def to_z_up(vertices: np.ndarray, up: str) -> np.ndarray:
     """Vertices ``(..., 3)`` of a file whose up axis is ``up`` in the project's z-up axes (glTF's y-up
-    (x, y, z) is (x, -z, y) here: the inverse of what ``aniformer.glb`` writes)."""
+    (x, y, z) is (x, -z, y) here: the inverse of what ``aniformer.io.glb`` writes)."""
     if up == "z":
         return vertices
     x, y, z = np.moveaxis(np.asarray(vertices), -1, 0)

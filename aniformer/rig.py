@@ -25,8 +25,8 @@ Joint names are Anny's bone labels, or with ``bone_names="mixamo"`` Mixamo's (``
 tools that know Mixamo's skeleton map it without a bone map; Anny's extra bones (a second spine and
 neck segment, twist bones, metacarpals) keep their labels.
 
-Coordinates: metres, z up (the project's axes); writers convert (``aniformer.glb.write_rigged_glb``,
-``aniformer.bvh.write_bvh``).
+Coordinates: metres, z up (the project's axes); writers convert (``aniformer.io.glb.write_rigged_glb``,
+``aniformer.io.bvh.write_bvh``).
 """
 
 from __future__ import annotations

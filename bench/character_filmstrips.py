@@ -23,8 +23,8 @@ import trimesh
 
 from aniformer.animate import driving_files, load_driving, write_obj
 from aniformer.geometry import center_bbox, from_z_up, to_z_up
+from aniformer.io.render import render_filmstrip
 from aniformer.metrics import PMD_SCALE
-from aniformer.render import render_filmstrip
 from aniformer.synth.stream import StreamPairs
 from aniformer.synth.variants import DRIVER_FRAMES, variant_pairs
 

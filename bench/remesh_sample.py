@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from aniformer.animate import driving_files, load_driving, write_obj
-from aniformer.mesh import load_mesh
+from aniformer.io.mesh import load_mesh
 from aniformer.registration import closest_points
 from aniformer.synth.variants import remesh
 

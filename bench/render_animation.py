@@ -20,9 +20,9 @@ import torch
 
 from aniformer.animate import driving_files, load_driving
 from aniformer.geometry import center_bbox
-from aniformer.mesh import load_mesh
+from aniformer.io.mesh import load_mesh
+from aniformer.io.render import render_filmstrip
 from aniformer.metrics import PMD_SCALE, pmd
-from aniformer.render import render_filmstrip
 
 
 def main(samples: str, animation: str, png: str) -> None:

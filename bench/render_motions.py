@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aniformer.render import render_filmstrip
+from aniformer.io.render import render_filmstrip
 from aniformer.synth.bodies import BodyModel, sample_identities
 from aniformer.synth.motions import ACTIONS, sample_motion
 

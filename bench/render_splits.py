@@ -19,8 +19,8 @@ import torch
 
 from aniformer.animate import animate_sequence
 from aniformer.checkpoint import model_from_checkpoint
+from aniformer.io.render import render_filmstrip
 from aniformer.metrics import PMD_SCALE, pmd
-from aniformer.render import render_filmstrip
 from aniformer.synth.stream import TEST_SPLITS, StreamPairs
 
 

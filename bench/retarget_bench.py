@@ -37,7 +37,7 @@ def make_library(root: Path) -> tuple[Path, Path]:
     import numpy as np
     import trimesh
 
-    from aniformer.mesh import load_mesh
+    from aniformer.io.mesh import load_mesh
     from aniformer.synth.stream import StreamPairs, _body_model, pose_pairs
     from aniformer.synth.variants import remesh
 
@@ -92,7 +92,7 @@ def run_job(cpus: int, argv: list[str]) -> None:
     """jobs/retarget.py's main on a local Ray started here with ``cpus`` CPUs (connect() then joins it)."""
     import ray
 
-    from aniformer.cli import run
+    from aniformer.cli.exits import run
     from jobs.retarget import main
     from pipeline.cluster import LOCALHOST, _local_node_only
 

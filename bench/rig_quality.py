@@ -35,7 +35,7 @@ def main() -> None:
     from aniformer.checkpoint import PRETRAINED, model_from_checkpoint
     from aniformer.evaluate import model_contender
     from aniformer.geometry import center_bbox
-    from aniformer.glb import write_glb, write_rigged_glb
+    from aniformer.io.glb import write_glb, write_rigged_glb
     from aniformer.metrics import PMD_SCALE, pmd_per_frame
     from aniformer.registration import Correspondence
     from aniformer.rig import build_rig, fit_rig, skin

@@ -28,7 +28,7 @@ Steps:
      ``lr``, ``pmd_seen``, ``pmd_unseen``; sweep: every trial by its sampled parameters (summary.csv:
      status, memory decision, epochs, best PMD) and the same per-epoch metrics of its MLflow run;
      evaluate: every metric of its run and its results.csv byte for byte;
-   - no staging leftovers (``.NAME.*.tmp``, aniformer/files.py) anywhere in its folder;
+   - no staging leftovers (``.NAME.*.tmp``, aniformer/cli/outputs.py, aniformer/io/files.py) anywhere in its folder;
    - at the end, no process of the soak alive (every job process carries ``SOAK_TAG`` in its
      environment, inherited by its Ray's GCS, raylet and workers): each job's local Ray, and so its
      placement groups, is gone when the job exits.
@@ -417,7 +417,7 @@ def differences(expected, got, path: str = "") -> list[str]:
 
 
 def staging_leftovers(folder: Path) -> list[str]:
-    """Staging directories and temporary files (aniformer/files.py) left anywhere under `folder`."""
+    """Staging directories and temporary files (aniformer/cli/outputs.py, aniformer/io/files.py) left anywhere under `folder`."""
     return [str(p) for p in folder.rglob("*") if STAGING.match(p.name)]
 
 

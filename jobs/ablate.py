@@ -17,9 +17,10 @@ import json
 import time
 from pathlib import Path
 
-from aniformer.cli import RunJobParser, exit_on_sigterm, run
+from aniformer.cli.args import RunJobParser
+from aniformer.cli.exits import exit_on_sigterm, run
+from aniformer.cli.locks import releases_locks
 from aniformer.errors import UserError
-from aniformer.files import releases_locks
 
 
 def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: str, parent_run_id: str,
@@ -140,7 +141,7 @@ def main(argv: list[str]) -> None:
     out, name, bank = RunJobParser.locations(args)
 
     from aniformer.evaluate import DEFAULT_CLIP_FRAMES, table_csv, table_markdown
-    from aniformer.files import atomic_path
+    from aniformer.io.files import atomic_path
     from pipeline.ablation import log_pmd_table, slug
     from pipeline.cluster import connect
     from pipeline.console import quiet_ray

@@ -41,11 +41,13 @@ from pathlib import Path
 
 from aniformer.animate import FPS_SIDECARS
 from aniformer.animation_run import AnimateOptions, animate_files, check_flags
-from aniformer.cli import ArgumentParser, options_from, resolve_device, run
-from aniformer.files import claim_output, releases_locks
+from aniformer.cli.args import ArgumentParser, options_from, resolve_device
+from aniformer.cli.exits import run
+from aniformer.cli.locks import releases_locks
+from aniformer.cli.outputs import claim_output
 from aniformer.geometry import UP_AXES
-from aniformer.glb import FRAMES_PER_MESH, MAX_MORPH_TARGETS
-from aniformer.mesh import DEFAULT_MAX_VERTICES, UNITS
+from aniformer.io.glb import FRAMES_PER_MESH, MAX_MORPH_TARGETS
+from aniformer.io.mesh import DEFAULT_MAX_VERTICES, UNITS
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:

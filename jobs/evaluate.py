@@ -23,8 +23,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from aniformer.cli import ArgumentParser, options_from, resolve_device, run
-from aniformer.files import claim_output, releases_locks
+from aniformer.cli.args import ArgumentParser, options_from, resolve_device
+from aniformer.cli.exits import run
+from aniformer.cli.locks import releases_locks
+from aniformer.cli.outputs import claim_output
 from pipeline.evaluation import EvaluateOptions, check_flags, evaluate_checkpoint, refusals_line
 
 

@@ -23,9 +23,11 @@ import argparse
 import json
 from pathlib import Path
 
-from aniformer.cli import ArgumentParser, run
+from aniformer.cli.args import ArgumentParser
+from aniformer.cli.exits import run
+from aniformer.cli.locks import releases_locks
+from aniformer.cli.outputs import claim_output, staged_output_dir
 from aniformer.errors import UserError
-from aniformer.files import claim_output, releases_locks, staged_output_dir
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:

@@ -20,9 +20,11 @@ import dataclasses
 import time
 from pathlib import Path
 
-from aniformer.cli import ArgumentParser, exit_on_sigterm, load_config, run
+from aniformer.cli.args import ArgumentParser, load_config
+from aniformer.cli.exits import exit_on_sigterm, run
+from aniformer.cli.locks import releases_locks
+from aniformer.cli.outputs import claim_output, staged_output_dir
 from aniformer.errors import UserError
-from aniformer.files import claim_output, releases_locks, staged_output_dir
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:

@@ -29,11 +29,14 @@ import time
 from pathlib import Path
 
 from aniformer.animation_run import AnimateOptions
-from aniformer.cli import ArgumentParser, options_from, run
+from aniformer.cli.args import ArgumentParser, options_from
+from aniformer.cli.exits import run
+from aniformer.cli.locks import lock_output, releases_locks
+from aniformer.cli.outputs import protect_inputs
 from aniformer.errors import UserError
-from aniformer.files import atomic_path, lock_output, natural_key, protect_inputs, releases_locks
 from aniformer.geometry import UP_AXES
-from aniformer.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, UNITS
+from aniformer.io.files import atomic_path, natural_key
+from aniformer.io.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, UNITS
 from jobs import animate
 
 COLUMNS = ("target", "clip", "status", "frames", "seconds", "fit_mm", "self_check")
@@ -166,7 +169,7 @@ def main(argv: list[str]) -> None:
 
     from tqdm import tqdm
 
-    from aniformer.cli import exit_on_sigterm
+    from aniformer.cli.exits import exit_on_sigterm
     from pipeline.cluster import connect
     from pipeline.console import quiet_ray
     from pipeline.retarget import Pair, pair_row, schedule

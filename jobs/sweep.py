@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import sys
 
-from aniformer.cli import RunJobParser, exit_on_sigterm, load_config, run
-from aniformer.files import releases_locks
+from aniformer.cli.args import RunJobParser, load_config
+from aniformer.cli.exits import exit_on_sigterm, run
+from aniformer.cli.locks import releases_locks
 
 
 def report(name: str, rows: list, counts: dict, summary, best: dict | None, unfinished: list, parent) -> None:

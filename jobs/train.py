@@ -17,8 +17,9 @@ and `mlflow.pyfunc.load_model("models:/aniformer/latest")` load it (pipeline/reg
 
 from __future__ import annotations
 
-from aniformer.cli import RunJobParser, exit_on_sigterm, load_config, run
-from aniformer.files import releases_locks
+from aniformer.cli.args import RunJobParser, load_config
+from aniformer.cli.exits import exit_on_sigterm, run
+from aniformer.cli.locks import releases_locks
 
 
 @releases_locks  # the --out lock ends with main, however main is called

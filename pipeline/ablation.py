@@ -33,7 +33,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from aniformer.cli import apply_overrides, load_config
+from aniformer.cli.args import apply_overrides, load_config
 from aniformer.config import Section, from_dict
 from aniformer.errors import UserError
 

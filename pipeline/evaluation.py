@@ -11,8 +11,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from aniformer.cli.outputs import staged_output_dir
 from aniformer.errors import UserError
-from aniformer.files import staged_output_dir
 from pipeline.evaluation_data import EvalData, choose_data
 from pipeline.registry import resolve_checkpoint
 from pipeline.tracking import RUN_ID, quiet_mlflow

@@ -40,9 +40,11 @@ import time
 import urllib.request
 from pathlib import Path
 
-from aniformer.cli import ArgumentParser, run
+from aniformer.cli.args import ArgumentParser
+from aniformer.cli.exits import run
+from aniformer.cli.locks import lock_output, releases_locks
 from aniformer.errors import UserError
-from aniformer.files import atomic_path, lock_output, releases_locks
+from aniformer.io.files import atomic_path
 
 DB = "mlflow.db"
 AUTH_DB = "basic_auth.db"  # MLflow's basic-auth users and permissions

@@ -70,7 +70,7 @@ def load_target(path: str, up: str, unit: str, max_vertices: int):
     """(its Anny topology or None, the `Mesh`)."""
     from aniformer.animation_run import anny_topology, input_axis
     from aniformer.geometry import to_z_up
-    from aniformer.mesh import load_mesh
+    from aniformer.io.mesh import load_mesh
 
     vertices, faces = load_mesh(path, max_vertices=max_vertices, unit=unit)
     axis = input_axis(up, Path(path), vertices[None], faces)
@@ -132,7 +132,7 @@ class Animator:
         import tempfile
 
         from aniformer.checkpoint import model_from_checkpoint
-        from aniformer.cli import resolve_device
+        from aniformer.cli.args import resolve_device
 
         with tempfile.NamedTemporaryFile(suffix=".pt") as file:
             file.write(checkpoint)

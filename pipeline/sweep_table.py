@@ -12,7 +12,7 @@ from urllib.parse import quote
 
 from ray.tune import CLIReporter
 
-from aniformer.files import atomic_path
+from aniformer.io.files import atomic_path
 from pipeline.sweep_config import SweepConfig
 from pipeline.tracking import Tracker, tracking_uri
 from pipeline.tune import STATUSES, SUMMARY_FIELDS, decision_fields, last_result, plan_trial, trial_status

@@ -4,7 +4,7 @@ A job's run is identified by its absolute output directory plus its name (tags `
 path, and `aniformer.out_id`, a digest of it that is safe in a search filter), never by the name alone:
 two jobs of one name in different `--out`s get two runs, each with its own artifacts. A child run (a
 sweep's trial) without an output of its own is identified by its parent run plus its name. The
-output lock (`aniformer.files.lock_output`) makes the job the only one on its output, so a run of that
+output lock (`aniformer.cli.locks.lock_output`) makes the job the only one on its output, so a run of that
 output still RUNNING when it starts was left so by a killed driver: it is ended KILLED (tagged
 `aniformer.ended_by`), and the job's own run is then reopened.
 
@@ -89,7 +89,7 @@ def client_for(uri: str) -> MlflowClient:
     require_reachable(uri)
     if uri in _READY or not uri.startswith("sqlite:///"):
         return MlflowClient(uri)
-    from aniformer.files import exclusive
+    from aniformer.cli.locks import exclusive
 
     db = Path(uri.removeprefix("sqlite:///"))
     with exclusive(db.with_name(db.name + ".lock")):
@@ -158,7 +158,7 @@ class Tracker:
     def ended(self) -> Iterator[None]:
         """End the run as the block leaves: FINISHED, KILLED on Ctrl-C or SIGTERM (SystemExit), else
         FAILED, so a job never leaves its run RUNNING."""
-        from aniformer.cli import terminated
+        from aniformer.cli.exits import terminated
 
         status = "FAILED"
         try:
@@ -252,7 +252,7 @@ def start_job_run(job: str, config: Mapping, experiment: str = DEFAULT_EXPERIMEN
 
     When this process holds the lock on `out`, runs of `out` left RUNNING by a killed driver are ended
     KILLED first (`end_orphaned_runs`)."""
-    from aniformer.files import held_lock
+    from aniformer.cli.locks import held_lock
 
     uri = tracking_uri()
     client = client_for(uri)

@@ -34,7 +34,7 @@ from ray.train.torch import TorchTrainer
 
 from aniformer.checkpoint import FILENAME, save_checkpoint, unwrap
 from aniformer.errors import UserError, root_cause
-from aniformer.files import atomic_path
+from aniformer.io.files import atomic_path
 from aniformer.losses import loss_terms
 from aniformer.metrics import PMD_SCALE, pmd
 from aniformer.model import attention_kernels
@@ -72,7 +72,7 @@ def evaluate_split(model, batches, frames: slice, device, autocast) -> tuple[flo
 
 
 def render_example(example: dict, frames: slice, bank_faces: np.ndarray, path: Path) -> Path:
-    from aniformer.render import render_filmstrip
+    from aniformer.io.render import render_filmstrip
 
     faces = example["target_faces"][0].numpy()
     window = example["driving"].shape[1]

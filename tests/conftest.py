@@ -102,7 +102,7 @@ def repo_root() -> Path:
 @pytest.fixture(scope="session")
 def job_main():
     """`job_main("train")`: jobs/train.py's `main`, loaded once per session, to run in this process
-    under `aniformer.cli.run` (a subprocess per case costs seconds of imports)."""
+    under `aniformer.cli.exits.run` (a subprocess per case costs seconds of imports)."""
     import importlib
 
     return lambda name: importlib.import_module(f"jobs.{name}").main

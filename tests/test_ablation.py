@@ -139,7 +139,7 @@ def test_ablation_job_trains_every_variant_then_one_table(tmp_path, ray_address,
     splits = json.loads((out / "ablation.json").read_text())["splits"]
     assert {"seen", "unseen"} <= set(splits)
     from aniformer.checkpoint import load_checkpoint, model_from_checkpoint
-    from aniformer.cli import load_config
+    from aniformer.cli.args import load_config
     from pipeline.ablation import slug
     from pipeline.data import PairSampler, load_bank
     from pipeline.run_spec import RunSpec

@@ -38,11 +38,11 @@ from aniformer.animate import (
     write_obj,
 )
 from aniformer.checkpoint import save_checkpoint
-from aniformer.cli import run
+from aniformer.cli.exits import run
 from aniformer.errors import MeshError, UserError
-from aniformer.files import natural_key
 from aniformer.geometry import center_bbox
-from aniformer.glb import MAX_MORPH_TARGETS, mesh_chunks, read_glb, to_gltf_axes, write_glb
+from aniformer.io.files import natural_key
+from aniformer.io.glb import MAX_MORPH_TARGETS, mesh_chunks, read_glb, to_gltf_axes, write_glb
 from aniformer.model import AniFormer, AniFormerConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -369,7 +369,7 @@ def test_write_obj_writes_plain_v_and_f_lines(tmp_path):
 
 
 def test_preview_mesh_decimates_every_frame_alike():
-    from aniformer.render import preview_mesh
+    from aniformer.io.render import preview_mesh
 
     sphere = trimesh.creation.icosphere(subdivisions=4)  # 5,120 faces
     shift = np.array([0.1, -0.2, 0.3])

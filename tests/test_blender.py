@@ -17,10 +17,10 @@ from pathlib import Path
 import pytest
 from test_animate import animate_main, body_pixels, jump_and_walk, make_checkpoint, world_frames, write_driver
 
-import aniformer.glb
+import aniformer.io.glb
 from aniformer.animate import write_obj
-from aniformer.glb import write_glb
-from aniformer.mesh import load_mesh
+from aniformer.io.glb import write_glb
+from aniformer.io.mesh import load_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "bench" / "blender_import.py"
@@ -63,7 +63,7 @@ def test_blender_imports_a_jump_upright_in_the_air_at_its_fps(tmp_path):
 
 
 def test_blender_flags_a_z_up_glb_as_lying_down(tmp_path, monkeypatch):
-    monkeypatch.setattr(aniformer.glb, "to_gltf_axes", lambda v: v)  # the old bug: z-up positions in glTF
+    monkeypatch.setattr(aniformer.io.glb, "to_gltf_axes", lambda v: v)  # the old bug: z-up positions in glTF
     code, report, output = blender_import(jump_glb(tmp_path / "down.glb"), "--height", 1.7)
     assert code == 1 and "does not stand up" in output, output[-3000:]
     assert report["frame_0"]["z_extent"] < 0.5  # the 0.24 m depth of the body: it lies face down

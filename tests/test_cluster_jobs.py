@@ -22,7 +22,7 @@ def test_training_job_submitted_to_the_cluster(cluster, jobs):
     import torch
 
     from aniformer.checkpoint import load_checkpoint
-    from aniformer.cli import load_config
+    from aniformer.cli.args import load_config
     from pipeline.run_spec import RunSpec
 
     best, last = load_checkpoint(out / "best.pt"), load_checkpoint(out / "last.pt")

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aniformer.cli import load_config
+from aniformer.cli.args import load_config
 from aniformer.config import from_dict
 from aniformer.errors import UserError
 from pipeline import data
@@ -441,7 +441,7 @@ def run_job(*args, env=None) -> subprocess.CompletedProcess:
     ],
 )
 def test_job_bad_input_exits_2_with_one_line(tmp_path, capsys, job_main, args, words):
-    from aniformer.cli import run
+    from aniformer.cli.exits import run
 
     with pytest.raises(SystemExit) as exit_:
         run(job_main("generate_data"), [*map(str, args), "--out", str(tmp_path / "out")])

@@ -13,7 +13,7 @@ import torch
 import yaml
 
 from aniformer.checkpoint import model_from_checkpoint, save_checkpoint
-from aniformer.cli import run
+from aniformer.cli.exits import run
 from aniformer.errors import UserError
 from aniformer.evaluate import (
     Contender,
@@ -332,8 +332,8 @@ def test_export_then_animate_is_the_documented_flow(tiny_run, tmp_path, capsys):
     """jobs/export_meshes.py turns a bank split into OBJ inputs that jobs/animate.py takes as they are."""
     from aniformer.animate import driving_files, load_driving
     from aniformer.errors import UserError
-    from aniformer.glb import read_glb
-    from aniformer.mesh import load_mesh
+    from aniformer.io.glb import read_glb
+    from aniformer.io.mesh import load_mesh
     from jobs.animate import main as animate_main
     from jobs.export_meshes import main as export_main
     from pipeline.data import load_bank

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aniformer.cli import load_config, run
+from aniformer.cli.args import load_config
+from aniformer.cli.exits import run
 from aniformer.errors import UserError
 from pipeline import data
 from pipeline.data import manifest as bank_manifest
@@ -222,8 +223,7 @@ def test_export_meshes_job_refuses_a_corrupt_bank_in_one_line(bank, tmp_path, ca
 
 HOLDER = textwrap.dedent("""
     import sys, time
-    sys.path.insert(0, {root!r})
-    from aniformer.files import lock_output
+    from aniformer.cli.locks import lock_output
     lock_output(sys.argv[1])
     print("locked", flush=True)
     time.sleep(120)
@@ -236,7 +236,7 @@ def holder(tmp_path, read_line):
     procs = []
 
     def start(out: Path) -> subprocess.Popen:
-        proc = subprocess.Popen([PY, "-c", HOLDER.format(root=str(ROOT)), str(out)], stdout=subprocess.PIPE, text=True)
+        proc = subprocess.Popen([PY, "-c", HOLDER, str(out)], stdout=subprocess.PIPE, text=True)
         procs.append(proc)
         assert read_line(proc.stdout, 60, "the lock holder").strip() == "locked"
         return proc
@@ -268,7 +268,7 @@ def test_a_second_job_on_the_same_out_is_refused_naming_the_first(job, tmp_path,
 
 
 def test_the_lock_is_released_when_the_holder_dies_and_its_file_removed_after_a_job(tmp_path, holder):
-    from aniformer.files import LOCK_NAME, lock_output
+    from aniformer.cli.locks import LOCK_NAME, lock_output
 
     out = tmp_path / "out"
     first = holder(out)
@@ -283,7 +283,7 @@ def test_the_lock_is_released_when_the_holder_dies_and_its_file_removed_after_a_
 def test_a_job_main_called_directly_releases_its_lock_and_leaves_no_directory(tmp_path, job_main):
     """Not through `cli.run` (tests call the mains directly): a UserError after the lock was taken still
     releases it, and removes the `--out` it created to hold it."""
-    from aniformer.files import _HELD
+    from aniformer.cli.locks import _HELD
 
     out = tmp_path / "x"
     with pytest.raises(UserError, match="not a split of the stream"):
@@ -293,13 +293,13 @@ def test_a_job_main_called_directly_releases_its_lock_and_leaves_no_directory(tm
 
 def test_a_staged_output_stays_locked_while_it_replaces_the_old_one(tmp_path, holder):
     """The staging directory is locked before it is swapped in, so no other job gets in between."""
-    from aniformer.files import claim_output, release_locks, staged_output_dir
+    from aniformer.cli.locks import release_locks
+    from aniformer.cli.outputs import claim_output, staged_output_dir
 
     out = tmp_path / "out"
     out.mkdir()
     (out / "old.txt").write_text("old")
-    probe = [PY, "-c", f"import sys; sys.path.insert(0, {str(ROOT)!r}); from aniformer.files import lock_output; "
-             f"lock_output({str(out)!r})"]
+    probe = [PY, "-c", f"from aniformer.cli.locks import lock_output; lock_output({str(out)!r})"]
     try:
         claim_output(out, overwrite=True)
         with staged_output_dir(out, overwrite=True) as tmp:
@@ -315,7 +315,8 @@ def test_a_staged_output_stays_locked_while_it_replaces_the_old_one(tmp_path, ho
 
 
 def test_stale_staging_directories_are_removed_at_the_next_start(tmp_path, holder):
-    from aniformer.files import claim_output, release_locks, staged_output_dir
+    from aniformer.cli.locks import release_locks
+    from aniformer.cli.outputs import claim_output, staged_output_dir
 
     out = tmp_path / "out"
     dead = subprocess.run([PY, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
@@ -341,7 +342,7 @@ def test_stale_staging_directories_are_removed_at_the_next_start(tmp_path, holde
 def test_an_incomplete_own_bank_is_regenerated_staged(tmp_path, monkeypatch):
     """What an unstaged generation killed mid-way left (shards, no manifest) is replaced; a killed
     staged one left a staging directory, which the next start removes."""
-    from aniformer.files import lock_output, release_locks
+    from aniformer.cli.locks import lock_output, release_locks
 
     out = tmp_path / "run"
     bank = out / "bank"
@@ -373,7 +374,7 @@ def test_an_incomplete_own_bank_is_regenerated_staged(tmp_path, monkeypatch):
 
 
 def test_protect_inputs(tmp_path):
-    from aniformer.files import protect_inputs
+    from aniformer.cli.outputs import protect_inputs
 
     run_dir = tmp_path / "run"
     (run_dir / "bank").mkdir(parents=True)
@@ -455,7 +456,7 @@ def test_runs_are_identified_by_output_and_name(store, tmp_path):
 
 
 def test_a_run_left_running_by_a_killed_driver_is_ended_by_the_next_job(store, tmp_path):
-    from aniformer.files import lock_output, release_locks
+    from aniformer.cli.locks import lock_output, release_locks
     from pipeline.tracking import start_job_run
 
     out = tmp_path / "run"
@@ -543,8 +544,7 @@ def test_a_run_id_lookup_without_a_store_creates_none(tmp_path, monkeypatch):
 
 SLEEPER = textwrap.dedent("""
     import sys, time
-    sys.path.insert(0, {root!r})
-    from aniformer.cli import run
+    from aniformer.cli.exits import run
     def main(argv):
         print("ready", flush=True)
         try:

@@ -25,7 +25,8 @@ import torch
 from test_animate import animate_main, make_checkpoint, write_driver
 
 from aniformer import animate, checkpoint
-from aniformer.cli import apply_overrides, load_config, run
+from aniformer.cli.args import apply_overrides, load_config
+from aniformer.cli.exits import run
 from aniformer.errors import UserError
 from aniformer.model import AniFormer, AniFormerConfig
 from pipeline import tracking

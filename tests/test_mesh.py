@@ -6,7 +6,7 @@ import trimesh
 
 from aniformer.errors import MeshError
 from aniformer.geometry import center_bbox, shuffle_vertices
-from aniformer.mesh import load_mesh, save_mesh, validate_mesh
+from aniformer.io.mesh import load_mesh, save_mesh, validate_mesh
 
 
 @pytest.fixture

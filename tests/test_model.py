@@ -266,7 +266,7 @@ def test_compiled_model_matches_eager(repo_root):
     the compiled forward and gradients equal the eager ones. Model and batch are configs/tiny.yaml's
     (369 vertices), so that the compiled training job of tests/test_train.py finds these kernels in
     inductor's on-disk cache instead of compiling them again."""
-    from aniformer.cli import load_config
+    from aniformer.cli.args import load_config
 
     config = load_config(repo_root / "configs/tiny.yaml")
     torch.manual_seed(0)

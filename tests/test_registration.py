@@ -83,9 +83,9 @@ def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main,
     trusted by the self-check, and its frames are written in its own (y-up) axes, upright."""
     import trimesh
 
-    from aniformer.cli import run
+    from aniformer.cli.exits import run
     from aniformer.geometry import from_z_up
-    from aniformer.mesh import load_mesh
+    from aniformer.io.mesh import load_mesh
     from aniformer.synth.variants import remesh
 
     samples, anim = tmp_path / "clip", tmp_path / "anim"
@@ -118,7 +118,7 @@ def test_animate_refuses_a_mesh_that_is_not_a_body_unless_forced(tmp_path, job_m
     what to try, nothing written; with --force it is written and animation.json says it was not trusted."""
     import trimesh
 
-    from aniformer.cli import run
+    from aniformer.cli.exits import run
     from aniformer.synth.stream import _body_model
 
     body = _body_model(MODEL_TOPOLOGY)

@@ -17,7 +17,7 @@ from test_animate import TINY_MODEL, animate_main, make_checkpoint
 
 from aniformer.animate import write_obj
 from aniformer.checkpoint import model_from_checkpoint
-from aniformer.cli import run
+from aniformer.cli.exits import run
 
 
 @pytest.fixture(scope="module")

@@ -27,8 +27,8 @@ def library(tmp_path_factory, job_main) -> Path:
     """targets/{anny,decimated}.obj and clips/{walk,crouch,shuffled_walk}/ (4 frames each), as a user has them."""
     import trimesh
 
-    from aniformer.cli import run
-    from aniformer.mesh import load_mesh
+    from aniformer.cli.exits import run
+    from aniformer.io.mesh import load_mesh
     from aniformer.synth.stream import StreamPairs, _body_model, pose_pairs
     from aniformer.synth.variants import remesh
 
@@ -102,7 +102,7 @@ def test_a_library_is_one_job_each_foreign_mesh_registered_once_and_a_pair_equal
     assert metrics["pairs_ok"] == 6 and metrics["pair/decimated/walk/frames"] == 4
     assert "summary.csv" in [a.path for a in tracker.client.list_artifacts(tracker.run_id)]
 
-    from aniformer.cli import run
+    from aniformer.cli.exits import run
 
     alone = tmp_path / "alone"
     run(job_main("animate"), ["--target", str(library / "targets" / "anny.obj"), "--driving",

@@ -13,8 +13,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from aniformer.geometry import from_z_up
-from aniformer.glb import read_document, to_gltf_axes
-from aniformer.mesh import load_mesh
+from aniformer.io.glb import read_document, to_gltf_axes
+from aniformer.io.mesh import load_mesh
 
 MODEL_TOPOLOGY = "notoes_collapse3pc"
 FRAMES = 8
@@ -27,7 +27,7 @@ def rigged(tmp_path_factory, job_main):
     registered; Mixamo's bone names)."""
     import trimesh
 
-    from aniformer.cli import run
+    from aniformer.cli.exits import run
     from aniformer.synth.variants import remesh
 
     root = tmp_path_factory.mktemp("rig")

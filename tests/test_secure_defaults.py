@@ -92,7 +92,7 @@ def _tree(root: Path) -> dict[str, bytes | str]:
 def test_animate_writes_only_inside_out_whatever_the_input_names(tmp_path, monkeypatch):
     """Driving files named `..x.obj`, `x y.obj`, a symlinked frame and a symlinked directory, and
     an `--out` spelled with `..`: every file written lies inside the resolved `--out`."""
-    from aniformer.cli import run
+    from aniformer.cli.exits import run
     from jobs.animate import main
 
     ckpt = tiny_checkpoint(tmp_path / "ckpt" / "best.pt")

@@ -183,7 +183,7 @@ def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monk
     import csv
     import json
 
-    from aniformer.cli import run
+    from aniformer.cli.exits import run
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     out = tmp_path / "run"

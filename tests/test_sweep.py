@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from aniformer.cli import load_config
+from aniformer.cli.args import load_config
 from aniformer.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]

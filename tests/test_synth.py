@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from aniformer.render import render_filmstrip
+from aniformer.io.render import render_filmstrip
 from aniformer.synth.bodies import PHENOTYPE_KEYS, TOPOLOGIES, BodyModel, sample_identities
 from aniformer.synth.motions import ACTIONS, Motion, sample_motion
 from aniformer.synth.rig import CONTROLLED_PARENTS

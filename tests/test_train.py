@@ -26,7 +26,7 @@ TWO_WORKERS = ["train.workers=2", "train.cpus_per_worker=0.5"]
 
 @pytest.fixture(scope="module")
 def tiny_bank(tmp_path_factory, ray_cluster, repo_root):
-    from aniformer.cli import load_config
+    from aniformer.cli.args import load_config
     from pipeline.data import data_config, generate_bank
 
     bank = tmp_path_factory.mktemp("train") / "bank"
@@ -273,7 +273,7 @@ BAD_OVERRIDES = [("train.epochs=0", "epochs must be >= 1"),
 
 @pytest.mark.parametrize(("override", "message"), BAD_OVERRIDES, ids=[o for o, _ in BAD_OVERRIDES])
 def test_bad_config_fails_with_one_line_before_starting_ray(tmp_path, repo_root, capsys, job_main, override, message):
-    from aniformer.cli import run
+    from aniformer.cli.exits import run
 
     with pytest.raises(SystemExit) as exit_:
         run(job_main("train"), ["--config", str(repo_root / "configs/tiny.yaml"), "--out", str(tmp_path / "x"), override])
@@ -323,7 +323,7 @@ def recorded_pair_ids(spec, bank, storage: Path, name: str) -> list[int]:
 def test_training_reads_pairs_in_id_order(tmp_path, tiny_bank, repo_root):
     """build_trainer's ingest preserves block order: the same config and seed give the same batches
     (and so the same model), however Ray Data's tasks happen to finish."""
-    from aniformer.cli import load_config
+    from aniformer.cli.args import load_config
     from pipeline.run_spec import RunSpec
 
     # 2 epochs x 3,000 pairs: several blocks and assembly tasks, which finish in any order
@@ -358,7 +358,7 @@ def test_a_unicode_named_run_resumes_past_a_truncated_checkpoint_reading_only_un
     from the one before it instead of failing every retry.
     The resumed run's train dataset starts at the restored epoch (no pairs of earlier epochs are made and
     skipped), and the real loop trains on from there."""
-    from aniformer.cli import load_config
+    from aniformer.cli.args import load_config
     from pipeline.checkpoints import resume_epoch
     from pipeline.run_spec import RunSpec
     from pipeline.train import ray_run_name

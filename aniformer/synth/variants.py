@@ -18,7 +18,7 @@ any pose):
 - ``rotated``: ``posed`` turned by a uniformly random rotation;
 - ``lying``: turned 90 degrees about a random horizontal axis after a random heading;
 - ``glb``: written to a GLB file in glTF's y-up axes with trimesh, read back with
-  ``aniformer.mesh.load_mesh`` and turned z-up again;
+  ``aniformer.io.mesh.load_mesh`` and turned z-up again;
 - ``parts``: with an artist's separate parts: an eyeball in each eye socket (at Anny's ``eye.L``
   and ``eye.R`` bone heads) and a teeth box in the mouth cavity.
 
@@ -51,7 +51,7 @@ import torch
 import trimesh
 
 from aniformer.geometry import center_bbox, from_z_up, shuffle_vertices, to_z_up
-from aniformer.mesh import load_mesh
+from aniformer.io.mesh import load_mesh
 from aniformer.registration import SurfacePoints, closest_points
 from aniformer.synth.poses import sample_windows
 from aniformer.synth.stream import StreamPairs, _body_model, _choose, _generator, pose_pairs

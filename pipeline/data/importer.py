@@ -22,8 +22,8 @@ import numpy as np
 from tqdm import tqdm
 
 from aniformer.errors import UserError
-from aniformer.files import natural_key
-from aniformer.mesh import MESH_SUFFIXES, load_mesh
+from aniformer.io.files import natural_key
+from aniformer.io.mesh import MESH_SUFFIXES, load_mesh
 from pipeline.data.config import check_int, derive_seed
 from pipeline.data.manifest import Manifest, finish_bank, new_manifest, shard_name, write_file
 from pipeline.data.plan import sequences_for, split_table

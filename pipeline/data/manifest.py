@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from aniformer.errors import UserError
-from aniformer.files import atomic_path
+from aniformer.io.files import atomic_path
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"

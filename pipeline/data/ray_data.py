@@ -16,8 +16,8 @@ import torch
 from ray.data import DataContext, TaskPoolStrategy
 from tqdm import tqdm
 
+from aniformer.cli.outputs import staged_output_dir
 from aniformer.errors import UserError
-from aniformer.files import staged_output_dir
 from pipeline.data.bank import check_bank_matches, read_faces
 from pipeline.data.config import DataConfig
 from pipeline.data.manifest import (
@@ -140,7 +140,7 @@ def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool
     generated there when ``generate`` (the job's own ``OUT/bank``), else a `UserError`. Any other source
     (the stream) needs no bank: (None, its faces).
 
-    Generation is staged (``aniformer.files.staged_output_dir``): the bank appears complete or not at all, and a
+    Generation is staged (``aniformer.cli.outputs.staged_output_dir``): the bank appears complete or not at all, and a
     killed job's staging directory is removed by the next one. A bank directory holding only what an
     unstaged generation leaves (shards, faces, no manifest) is taken as incomplete and regenerated."""
     if cfg.source != "bank":

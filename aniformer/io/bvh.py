@@ -5,7 +5,7 @@ BVH has no bind matrices: a joint's rest orientation is its parent's, and OFFSET
 So every joint's frame here is world-aligned at the bind pose (the target's own pose): OFFSETs are the
 differences of bind joint positions, and a joint's rotation on frame k is its world turn since bind
 relative to its parent's. The rest pose of the file is thus the target's pose. Axes: y up (BVH's
-usual convention and Blender's importer default), as ``aniformer.glb`` writes them; unit: the
+usual convention and Blender's importer default), as ``aniformer.io.glb`` writes them; unit: the
 target's (``metres_per_unit``). Rotation channels are ZXY Euler angles in degrees (intrinsic:
 R = Rz Rx Ry), as every CHANNELS line states.
 """
@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from aniformer.files import atomic_path
-from aniformer.glb import GLTF_AXES
+from aniformer.io.files import atomic_path
+from aniformer.io.glb import GLTF_AXES
 
 EULER_ORDER = "ZXY"
 END_SITE = 0.5  # a leaf joint's End Site: this fraction of its own offset further on

@@ -1,8 +1,5 @@
-"""Shared command-line plumbing for the jobs: `--config FILE` plus `key=value` overrides, and
-one-line errors for bad input (atomic writes and output directories are `aniformer.files`).
-
-Every job's `main` raises `UserError` for anything the user can fix; `run` turns it into one line
-on stderr and exit status 2 (the convention of argparse itself).
+"""The jobs' arguments: `--config FILE` plus `key=value` overrides, parsers whose usage errors are one line
+(`aniformer.cli.exits.run` prints them), a job's options dataclass from its flags, `--name` and `--device`.
 
 Configs are read with `ConfigLoader`: YAML's anchors and aliases are allowed (configs/seeds.yaml
 names an override once), but a document whose aliases would expand to more than `MAX_CONFIG_NODES`
@@ -16,16 +13,14 @@ import argparse
 import copy
 import dataclasses
 import os
-import sys
 import unicodedata
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import yaml
 
+from aniformer.cli.locks import lock_output
 from aniformer.errors import UserError
-from aniformer.files import lock_output, release_locks
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -139,7 +134,7 @@ class RunJobParser(ArgumentParser):
     @staticmethod
     def locations(args: argparse.Namespace) -> tuple[Path, str, Path]:
         """(out, job name, bank) of parsed arguments; `out` is created and locked for this job
-        (`files.lock_output`: a second job on it is refused), the name checked."""
+        (`lock_output`: a second job on it is refused), the name checked."""
         out = Path(args.out).expanduser().resolve()
         name = job_name(args.name or out.name)
         lock_output(out)
@@ -177,64 +172,3 @@ def resolve_device(name: str):
     if device.type == "cuda" and not torch.cuda.is_available():
         raise UserError(f"--device {name}: CUDA is not available on this machine")
     return device
-
-
-_terminated = False
-
-
-def _on_sigterm(signum, frame):
-    global _terminated
-    _terminated = True
-    raise SystemExit(143)
-
-
-def exit_on_sigterm() -> None:
-    """(Re)install `run`'s SIGTERM handler: exit 143 with one line. A job calls it again after
-    `ray.init`, which installs a handler of its own (it prints a stack and kills the process)."""
-    import signal
-
-    signal.signal(signal.SIGTERM, _on_sigterm)
-
-
-def terminated() -> bool:
-    """Whether this process was sent SIGTERM (`ray job stop`, kill) while `run` ran its job."""
-    return _terminated
-
-
-def run(main: Callable[[list[str]], Any], argv: list[str] | None = None) -> None:
-    """Call `main(argv)`; a `UserError` becomes one line on stderr and exit status 2, Ctrl-C 130,
-    SIGTERM 143 (whatever the stack made of the `SystemExit` it raises), a full disk one line and 1.
-    Output locks the job took (`files.lock_output`) are released as it ends."""
-    import errno
-    import signal
-
-    global _terminated
-    _terminated = False
-    try:
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
-    except ValueError:  # not the main thread
-        previous = None
-    try:
-        main(sys.argv[1:] if argv is None else argv)
-    except BaseException as e:
-        if _terminated:
-            print("terminated (SIGTERM)", file=sys.stderr)
-            sys.exit(143)
-        if isinstance(e, UserError):
-            print(f"error: {e}", file=sys.stderr)
-            sys.exit(2)
-        if isinstance(e, KeyboardInterrupt):
-            print("interrupted", file=sys.stderr)
-            sys.exit(130)
-        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
-            print(f"error: no space left on the device ({e.filename or e}); nothing partial was kept",
-                  file=sys.stderr)
-            sys.exit(1)
-        raise
-    finally:
-        release_locks()
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-    if _terminated:  # the stack swallowed the SystemExit and returned
-        print("terminated (SIGTERM)", file=sys.stderr)
-        sys.exit(143)

@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
-from aniformer.files import atomic_path  # noqa: E402
+from aniformer.io.files import atomic_path  # noqa: E402
 
 _BASE_COLOUR = np.array([0.62, 0.70, 0.86])
 _LIGHT = np.array([-0.3, -1.0, 0.6]) / np.linalg.norm([-0.3, -1.0, 0.6])

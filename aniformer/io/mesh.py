@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 from aniformer.errors import MeshError
-from aniformer.files import atomic_path
+from aniformer.io.files import atomic_path
 
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
 DEFAULT_MAX_VERTICES = 2_000_000

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aniformer.files import atomic_path
+from aniformer.io.files import atomic_path
 
 _FLOAT, _UINT, _USHORT = 5126, 5125, 5123
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
