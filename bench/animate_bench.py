@@ -32,7 +32,6 @@ import numpy as np
 import trimesh
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 TARGETS = {"369": 369, "1.2k": 1_229, "18k": 18_000, "72k": 72_000, "150k": 150_000}
 CLIPS = (30, 300)

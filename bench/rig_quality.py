@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import sys
 import tempfile
 from pathlib import Path
 
@@ -24,7 +23,6 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 CLIP_FRAMES = 20  # the longest window the motion library gives at its largest stride (60 frames, stride 3)
 VARIANTS = ("same", "remeshed")

@@ -24,8 +24,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "bench"))
 
 MESHES = {"369": "notoes_collapse3pc", "1.2k": "notoes_collapse10pc", "12k": "notoes", "50k": "notoes"}
 DENSE_LIMIT = 13_000
