@@ -22,8 +22,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-
 CLIP_FRAMES = 20  # the longest window the motion library gives at its largest stride (60 frames, stride 3)
 VARIANTS = ("same", "remeshed")
 
