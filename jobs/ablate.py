@@ -30,7 +30,7 @@ def _train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: s
     from pipeline.ablation import slug
     from pipeline.console import Console
     from pipeline.tracking import start_job_run
-    from pipeline.train import train_job
+    from pipeline.trainer import train_job
 
     best = {}
     for row, spec in specs.items():

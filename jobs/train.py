@@ -47,7 +47,7 @@ def main(argv: list[str]) -> None:
     from pipeline.data import prepare_bank
     from pipeline.registry import log_best_model
     from pipeline.tracking import quiet_mlflow, start_job_run, ui_hint
-    from pipeline.train import train_job
+    from pipeline.trainer import train_job
 
     quiet_mlflow()
     console = Console.for_job(no_progress=args.no_progress, verbose=args.verbose)

@@ -1,11 +1,9 @@
-"""Ray Train: distributed data-parallel AniFormer training.
+"""Ray Train's per-worker loop: distributed data-parallel AniFormer training.
 
-`train_func` is the per-worker loop handed to `ray.train.torch.TorchTrainer` (DDP over gloo on CPU,
-nccl on GPU), in named steps: `restore`, then per epoch `train_epoch`, `validate_and_checkpoint` (rank 0)
-and `ray.train.report`. `build_trainer` makes the trainer: pair datasets, scaling, checkpoints (best by
-unseen PMD, plus the latest) and failure handling. A job re-created with the same name and storage
-resumes from its latest checkpoint (`pipeline.checkpoints`): Ray Train hands it to `train_func` via
-`get_checkpoint()`, and the train dataset starts at that epoch.
+`train_func` is the loop handed to `ray.train.torch.TorchTrainer` (DDP over gloo on CPU, nccl on GPU), in
+named steps: `restore`, then per epoch `train_epoch`, `validate_and_checkpoint` (rank 0) and
+`ray.train.report`. What it trains is one `TrainLoop` (the driver's `pipeline.trainer` makes it). A restored
+worker resumes from the checkpoint Ray Train hands it via `get_checkpoint()` (`pipeline.checkpoints`).
 
 One pass over the "train" dataset covers every remaining epoch (pairs of epoch e are seeded by (seed, e));
 each worker takes a fixed number of batches per epoch so that all DDP ranks step in lockstep.
@@ -13,13 +11,10 @@ each worker takes a fixed number of batches per epoch so that all DDP ranks step
 
 from __future__ import annotations
 
-import hashlib
 import math
-import re
 import resource
 import tempfile
 import time
-import unicodedata
 from collections import defaultdict
 from contextlib import nullcontext
 from dataclasses import dataclass
@@ -28,23 +23,32 @@ from pathlib import Path
 import numpy as np
 import ray.train
 import torch
-from ray.data import DataContext, ExecutionOptions
-from ray.train import CheckpointConfig, FailureConfig, LoggingConfig, RunConfig, ScalingConfig
-from ray.train.torch import TorchTrainer
 
 from aniformer.checkpoint import FILENAME, save_checkpoint, unwrap
-from aniformer.errors import UserError, root_cause
-from aniformer.io.files import atomic_path
 from aniformer.losses import loss_terms
 from aniformer.metrics import PMD_SCALE, pmd
 from aniformer.model import attention_kernels
 from aniformer.models import build_model
-from pipeline.checkpoints import SCORE, best_checkpoint, restore_state, resume_epoch
+from pipeline.checkpoints import restore_state
 from pipeline.console import Console, EpochBar, epoch_line, quiet_ray, show
-from pipeline.data import pair_dataset, pair_source, quiet_ray_data
-from pipeline.ddp import LoopbackTorchConfig
 from pipeline.run_spec import EVAL_SPLITS, RunSpec, resolve_precision
 from pipeline.tracking import Tracker
+
+LOOP_KEY = "loop"  # Ray Train's train_loop_config is a dict: the TrainLoop travels under this key
+
+
+@dataclass(frozen=True)
+class TrainLoop:
+    """What every worker's `train_func` trains: the run, the bank's faces (filmstrips), where the train dataset
+    starts, and who it reports to."""
+
+    spec: RunSpec
+    faces: np.ndarray
+    first_epoch: int = 0  # the train dataset's first epoch (the driver's resume point)
+    resumed_epoch: int = 0  # the epoch the driver's own restart (a re-run job) resumed from
+    tracker: Tracker | None = None
+    console: Console | None = None  # None leaves Ray's output as it is and prints nothing
+    placement_group_file: str | None = None  # a sweep trial's: where rank 0 records its placement group
 
 
 def peak_memory_gb(device: torch.device) -> float:
@@ -192,17 +196,15 @@ def validate_and_checkpoint(run: Training, spec: RunSpec, metrics: dict, directo
 
 def train_func(loop_config: dict) -> None:
     """The per-worker training loop: restore, then per epoch train, validate and checkpoint (rank 0), report."""
-    spec = RunSpec.from_config(loop_config["config"])
+    loop: TrainLoop = loop_config[LOOP_KEY]
+    spec, tracker, console, first_epoch = loop.spec, loop.tracker, loop.console, loop.first_epoch
     cfg = spec.train
-    tracker: Tracker | None = loop_config.get("tracker")
-    console = Console(**loop_config["console"]) if loop_config.get("console") else None
     quiet_ray(verbose=console is None or console.verbose)
     context = ray.train.get_context()
     rank, world = context.get_world_rank(), context.get_world_size()
     if not cfg.use_gpu:
         torch.set_num_threads(math.ceil(cfg.cpus_per_worker))
     run = restore(spec)
-    first_epoch = loop_config.get("first_epoch", 0)  # the train dataset's first epoch (the driver's resume point)
     if run.epoch < first_epoch:
         raise RuntimeError(f"restored epoch {run.epoch}, but the train dataset starts at epoch {first_epoch}")
     steps = max(1, spec.data.pairs_per_epoch // (cfg.batch_size * world))
@@ -215,7 +217,7 @@ def train_func(loop_config: dict) -> None:
         if run.epoch:  # a restore (worker failure or a re-run job) is visible in the run's history
             tracker.log_metrics({"resumed_from_epoch": run.epoch}, step=run.epoch)
     if run.epoch and rank == 0 and console and console.epoch_lines:
-        restarted = run.epoch > loop_config.get("resumed_epoch", first_epoch)  # beyond the driver's own resume point
+        restarted = run.epoch > loop.resumed_epoch  # beyond the driver's own resume point
         show(f"resumed from the checkpoint of epoch {run.epoch}" + (" after a worker group restart" if restarted else ""))
     while run.epoch < cfg.epochs:
         started = time.perf_counter()
@@ -226,119 +228,9 @@ def train_func(loop_config: dict) -> None:
             checkpoint = None
             if rank == 0:
                 checkpoint = validate_and_checkpoint(run, spec, metrics, Path(directory), tracker,
-                                                     loop_config["faces"])
+                                                     loop.faces)
                 if console and console.epoch_lines:
                     show(epoch_line(metrics, cfg.epochs, time.perf_counter() - started))
             ray.train.report(metrics, checkpoint=checkpoint)
 
 
-def ray_run_name(name: str) -> str:
-    """Ray Train's name for the run of job `name`, and its directory under the storage path. Ray Train
-    tags its metrics with it and encodes them as ASCII (a non-ASCII name failed the run with a
-    UnicodeEncodeError). A printable ASCII name is kept as it is. Any other gets its ASCII letters and
-    digits plus the first 8 hex digits of the name's SHA-256: the same name gives the same directory
-    in every run, so a rerun resumes, and names differing only outside ASCII stay apart."""
-    if name.isascii() and name.isprintable():
-        return name
-    letters = unicodedata.normalize("NFKD", name).encode("ascii", "ignore").decode()
-    slug = re.sub(r"[^A-Za-z0-9._-]+", "-", letters).strip("-.")
-    digest = hashlib.sha256(name.encode()).hexdigest()[:8]
-    return f"{slug}-{digest}" if slug else digest
-
-
-def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
-                  faces: np.ndarray, *, loop=train_func, loop_config: dict | None = None,
-                  callbacks: list | None = None, console: Console | None = None) -> TorchTrainer:
-    """The TorchTrainer of a run: pair datasets from the bank, scaling, checkpoints (best by unseen
-    PMD, plus the latest) and failure handling. Checkpoints live under `storage/ray_run_name(name)`
-    (`name` itself when it is ASCII) and a trainer re-created with the same name resumes from them.
-    `loop`, `loop_config` (merged into the loop's config) and `callbacks` let a sweep trial add its
-    own reporting to the same training. `console`
-    (a training job's): rank 0's bar and epoch lines, Ray Train's log level; None leaves Ray's output as is."""
-    cfg = spec.train
-    quiet_ray_data()  # before the trainer: it captures the DataContext for its workers
-    source = pair_source(spec.data, bank_dir)  # one bank load for every dataset
-    run_name = ray_run_name(name)
-    resumed_epoch = resume_epoch(storage / run_name)  # where the job's own restart (a rerun) picks up
-    first_epoch = min(resumed_epoch, cfg.epochs - 1)  # a finished run's re-run trains nothing
-    datasets = {"train": pair_dataset(source, "train", epochs=cfg.epochs - first_epoch, first_epoch=first_epoch)}
-    for split in EVAL_SPLITS:
-        datasets[split] = pair_dataset(source, split)
-    # Blocks in the order of their pair ids: the same config and seed give the same batches, so the
-    # same model (Ray Data otherwise yields blocks as tasks finish, and runs diverged from epoch 1).
-    # ray.train.DataConfig.default_ingest_options() with preserve_order, less its deprecated exclude_resources
-    # (passing it, even as the default, warns RayDeprecationWarning).
-    current = DataContext.get_current().execution_options
-    ingest = ExecutionOptions(resource_limits=current.resource_limits, preserve_order=True,
-                              verbose_progress=current.verbose_progress)
-    return TorchTrainer(
-        loop,
-        train_loop_config={"config": spec.to_dict(), "tracker": tracker, "faces": faces, "first_epoch": first_epoch,
-                           "resumed_epoch": resumed_epoch,
-                           "console": console.to_dict() if console else None, **(loop_config or {})},
-        torch_config=LoopbackTorchConfig(),  # the DDP store on 127.0.0.1-only when the workers are local
-        scaling_config=ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
-                                     resources_per_worker={"CPU": cfg.cpus_per_worker},
-                                     placement_strategy=cfg.placement_strategy),
-        datasets=datasets,
-        # One worker reads the whole stream: skip the split coordinator (half a core on a 2-core machine).
-        dataset_config=ray.train.DataConfig(datasets_to_split=["train"] if cfg.workers > 1 else [], execution_options=ingest),
-        run_config=RunConfig(
-            name=run_name,
-            storage_path=str(storage),
-            callbacks=callbacks,
-            checkpoint_config=CheckpointConfig(num_to_keep=cfg.keep_checkpoints, checkpoint_score_attribute=SCORE,
-                                               checkpoint_score_order="min"),
-            failure_config=FailureConfig(max_failures=cfg.max_failures),
-            logging_config=LoggingConfig(log_level=console.train_log_level) if console else None,
-        ),
-    )
-
-
-def fit(spec: RunSpec, bank_dir: Path, storage: Path, name: str, tracker: Tracker | None,
-        faces: np.ndarray, console: Console | None = None) -> ray.train.Result:
-    """Train `spec` on the pairs of `bank_dir`; checkpoints under `storage/ray_run_name(name)` (resumed if present)."""
-    return build_trainer(spec, bank_dir, storage, name, tracker, faces, console=console).fit()
-
-
-def ray_logs() -> str:
-    """Where this Ray session's logs are (the driver's node), for error messages."""
-    try:
-        return ray._private.worker.global_worker.node.get_logs_dir_path()
-    except Exception:
-        return "/tmp/ray/session_latest/logs on the head node"
-
-
-def training_failure(error: BaseException) -> str:
-    """One line for a failed `fit()`: the root cause, which worker, and where the logs are."""
-    cause = root_cause(error)
-    failures = getattr(error, "worker_failures", None)
-    where = f" on worker rank {min(failures)}" if failures else ""
-    text = " ".join(str(cause).split()) if str(cause).strip() else ""
-    detail = text if isinstance(cause, UserError) else f"{type(cause).__name__}" + (f": {text}" if text else "")
-    return f"training failed{where}: {detail[:300]} (logs: {ray_logs()})"
-
-
-def train_job(spec: RunSpec, bank_dir: Path, out: Path, name: str, tracker: Tracker,
-              faces: np.ndarray, console: Console | None = None) -> ray.train.Result:
-    """A training job's work (jobs/train.py, each ablation variant): `fit` with Ray's checkpoints under
-    `out/ray`, then `out/best.pt` (best unseen PMD) and `out/last.pt`, the best logged to the run."""
-    import shutil
-
-    from pipeline.tracking import CHECKPOINT_ARTIFACT
-
-    try:
-        result = fit(spec, bank_dir, out / "ray", name, tracker, faces, console)
-    except ray.train.TrainingFailedError as e:  # Ray Train v2's fit() raises what a worker or the controller did
-        raise UserError(training_failure(e)) from None
-    except ray.exceptions.RayActorError as e:  # the controller itself died (killed, its node lost)
-        raise UserError(f"training interrupted: Ray Train's controller died ({type(e).__name__}); the same command "
-                        f"resumes from the last checkpoint (logs: {ray_logs()})") from None
-    if result.error:
-        raise UserError(training_failure(result.error))
-    for checkpoint, filename in ((best_checkpoint(result), "best.pt"), (result.checkpoint, "last.pt")):
-        # Renamed into place: whatever stands at OUT/filename (a symlink too) is replaced, never written through.
-        with checkpoint.as_directory() as directory, atomic_path(out / filename) as tmp:
-            shutil.copyfile(Path(directory) / FILENAME, tmp)
-    tracker.log_artifact(out / "best.pt", CHECKPOINT_ARTIFACT.rsplit("/", 1)[0])
-    return result

@@ -26,6 +26,7 @@ TorchTrainer resumes from its last checkpoint under `OUT/trials/<sweep>-<trial_i
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -47,7 +48,8 @@ from pipeline.memory_gate import gate
 from pipeline.run_spec import RunSpec
 from pipeline.sweep_config import SweepConfig, apply_params, complete_points, search_space
 from pipeline.tracking import find_job_run, start_job_run, tracking_uri
-from pipeline.train import build_trainer, train_func
+from pipeline.train import LOOP_KEY, train_func
+from pipeline.trainer import build_trainer
 
 STATUSES = ("ok", "adjusted_memory", "skipped_memory", "early_stopped", "failed")
 SUMMARY_FIELDS = ("trial_id", "status", "memory_decision", "rec", "motion", "appearance", "window", "lr",
@@ -88,13 +90,13 @@ TRIAL_CONSOLE = Console(epoch_lines=False)  # the sweep's trial table is the con
 
 
 def sweep_train_func(loop_config: dict) -> None:
-    """`pipeline.train.train_func`, after rank 0 wrote its worker group's placement group id to
-    `loop_config["placement_group_file"]`.
+    """`pipeline.train.train_func`, after rank 0 wrote its worker group's placement group id to the
+    `TrainLoop`'s `placement_group_file`.
 
     A trial Tune stops takes its TorchTrainer controller with it before the controller removed its
     workers' placement group, and Train V2's own cleaner can miss it (docs/sweeps.md): the sweep
     driver removes the recorded group when the trial ends (`release_placement_group`)."""
-    path = loop_config.get("placement_group_file")
+    path = loop_config[LOOP_KEY].placement_group_file
     group = ray.util.get_current_placement_group()
     if path and group is not None and ray.train.get_context().get_world_rank() == 0:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -123,11 +125,9 @@ def run_trial(params: dict, *, base: dict, sweep: dict, sweep_name: str, bank: s
 
     sweep_cfg = from_dict(SweepConfig, sweep, "sweep")
     trial_id = tune.get_context().get_trial_id()
-    config = apply_params(base, params)
     requested, plan = plan_trial(base, params, vertices, len(faces), sweep_cfg)
-    run_cfg = apply_params(config, {"batch_size": plan.batch_size})
-    run_cfg["train"]["grad_accumulation"] = plan.grad_accumulation
-    spec = RunSpec.from_config(run_cfg)
+    spec = dataclasses.replace(requested, train=dataclasses.replace(requested.train, batch_size=plan.batch_size,
+                                                                    grad_accumulation=plan.grad_accumulation))
     name = f"{sweep_name}-{trial_id}"
     tracker = start_job_run(name, spec.to_dict(), experiment=experiment, parent_run_id=parent_run_id)
     extra = {**decision_fields(requested, plan, sweep_cfg), "mlflow_run_id": tracker.run_id}
@@ -141,7 +141,7 @@ def run_trial(params: dict, *, base: dict, sweep: dict, sweep_name: str, bank: s
         tracker.end("KILLED")
         return
     trainer = build_trainer(spec, Path(bank), Path(storage), name, tracker, faces, loop=sweep_train_func,
-                            loop_config={"placement_group_file": str(Path(storage) / name / PLACEMENT_GROUP_FILE)},
+                            placement_group_file=str(Path(storage) / name / PLACEMENT_GROUP_FILE),
                             callbacks=[TrialReport(extra)], console=TRIAL_CONSOLE)
     result = trainer.fit()  # the driver-side SweepRuns callback ends the MLflow run with the final status
     if result.error:

@@ -74,7 +74,7 @@ def registered_epoch(out: Path) -> int:
     snapshot, which is what a worker restart or a rerun restores from, `resume_epoch`); 0 while none is.
     A checkpoint file on disk is not enough: until it is registered a restore cannot find it."""
     from pipeline.checkpoints import resume_epoch
-    from pipeline.train import ray_run_name
+    from pipeline.trainer import ray_run_name
 
     return resume_epoch(out / "ray" / ray_run_name(out.name))
 
@@ -290,8 +290,8 @@ def test_bad_config_exits_2_from_the_shell(tmp_path, repo_root):
     assert not (tmp_path / "x").exists()
 
 
-def pair_order_recorder():
-    """A training loop that records the (epoch, index) ids of its train batches to ``config["record"]``;
+def pair_order_recorder(record: Path):
+    """A training loop that records the (epoch, index) ids of its train batches to ``record``;
     made by a function so that cloudpickle ships it by value (workers cannot import tests)."""
     def record_pair_order(config):
         import json
@@ -301,7 +301,7 @@ def pair_order_recorder():
         ids = []
         for batch in ray.train.get_dataset_shard("train").iter_torch_batches(batch_size=256):
             ids += (batch["epoch"] * 100_000 + batch["index"]).tolist()
-        Path(config["record"]).write_text(json.dumps(ids))
+        record.write_text(json.dumps(ids))
 
     return record_pair_order
 
@@ -311,11 +311,11 @@ def recorded_pair_ids(spec, bank, storage: Path, name: str) -> list[int]:
 
     import numpy as np
 
-    from pipeline.train import build_trainer
+    from pipeline.trainer import build_trainer
 
     record = storage.parent / f"{name}.ids.json"
     trainer = build_trainer(spec, bank, storage, name, None, np.zeros((1, 3), np.int64),
-                            loop=pair_order_recorder(), loop_config={"record": str(record)})
+                            loop=pair_order_recorder(record))
     assert trainer.fit().error is None
     return json.loads(record.read_text())
 
@@ -361,7 +361,7 @@ def test_a_unicode_named_run_resumes_past_a_truncated_checkpoint_reading_only_un
     from aniformer.cli.args import load_config
     from pipeline.checkpoints import resume_epoch
     from pipeline.run_spec import RunSpec
-    from pipeline.train import ray_run_name
+    from pipeline.trainer import ray_run_name
 
     out = tmp_path / "ünï cødé"
     ray_name = ray_run_name(out.name)

@@ -149,7 +149,7 @@ def options_from(kind: type, args: argparse.Namespace):
 def job_name(name: str) -> str:
     """A job name (`--name`, by default OUT's name): it names directories under `--out`, so it must be
     one plain path component, never `..` or a path that leads elsewhere. Any printable Unicode is a
-    name (Ray Train is given an ASCII form of it, `pipeline.train.ray_run_name`); control characters
+    name (Ray Train is given an ASCII form of it, `pipeline.trainer.ray_run_name`); control characters
     and bytes that are not UTF-8 are refused, as they would break one-line messages and MLflow's tags."""
     if not name or name in (".", "..") or "/" in name or "\\" in name or "\0" in name:
         raise UserError(f"--name {name!r}: must be a plain name (no '/', not '.' or '..')")

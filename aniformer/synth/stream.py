@@ -173,6 +173,10 @@ def centre(vertices: np.ndarray, mode: str) -> np.ndarray:
     return vertices - (low + high) / 2
 
 
+# The settings that shape the pairs drawn from any source (a stream, or a bank's `pipeline.data.PairSampler`).
+PAIR_FIELDS = ("window", "shuffle", "center", "seed", "pairs_per_epoch", "eval_pairs")
+
+
 class StreamPairs:
     """Pairs of the ``STREAM_SPLITS`` made on demand; a ``pipeline.data.PairSource`` like ``PairSampler``.
 
@@ -191,10 +195,8 @@ class StreamPairs:
         self.pairs_per_epoch, self.eval_pairs = pairs_per_epoch, eval_pairs
 
     def with_settings(self, **settings) -> StreamPairs:
-        """The same stream with other pair settings (window, center, seed, pair counts)."""
-        current = {"window": self.window, "shuffle": self.shuffle, "center": self.center, "seed": self.seed,
-                   "pairs_per_epoch": self.pairs_per_epoch, "eval_pairs": self.eval_pairs}
-        return type(self)(self.topology, **(current | settings))
+        """The same stream with other pair settings (``PAIR_FIELDS``)."""
+        return type(self)(self.topology, **({k: getattr(self, k) for k in PAIR_FIELDS} | settings))
 
     @property
     def body(self):

@@ -18,6 +18,7 @@ from aniformer.config import Section, from_dict
 from aniformer.geometry import CENTER_MODES
 from aniformer.synth.bodies import TOPOLOGIES
 from aniformer.synth.motions import ACTIONS
+from aniformer.synth.stream import PAIR_FIELDS
 
 SHUFFLE_MODES = ("none", "target", "both")
 SOURCES = ("bank", "stream")  # pairs from a mesh bank on disk, or made on the fly (aniformer.synth.stream)
@@ -54,8 +55,6 @@ GENERATION_FIELDS = (
     "instances_per_action",
     "unseen_instance_fraction",
 )
-# Fields that shape the pairs drawn from a bank.
-PAIR_FIELDS = ("window", "shuffle", "center", "seed", "pairs_per_epoch", "eval_pairs")
 # Fields that do not change any output byte (left out of the manifest).
 EXECUTION_FIELDS = ("workers",)
 

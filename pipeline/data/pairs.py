@@ -13,9 +13,9 @@ import numpy as np
 
 from aniformer.config import from_dict
 from aniformer.errors import UserError
-from aniformer.synth.stream import StreamPairs
+from aniformer.synth.stream import PAIR_FIELDS, StreamPairs
 from pipeline.data.bank import Bank, check_bank_matches, load_bank
-from pipeline.data.config import CENTER_MODES, PAIR_FIELDS, SHUFFLE_MODES, DataConfig, check_choice, derive_seed
+from pipeline.data.config import CENTER_MODES, SHUFFLE_MODES, DataConfig, check_choice, derive_seed
 
 
 @runtime_checkable
