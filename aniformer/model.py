@@ -269,6 +269,10 @@ class AniFormer(nn.Module):
             nn.init.zeros_(self.to_xyz[-1].bias if config.head == "regression" else self.to_xyz.bias)
         self.activation_checkpointing = False
 
+    def prior(self, driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+        """output="transfer": the target deformed into each driving pose (`deformation_transfer`, without grad)."""
+        return deformation_transfer(driving, target, faces)
+
     def forward(self, driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None = None) -> torch.Tensor:
         B, T, V1, _ = driving.shape
         V2 = target.shape[1]
@@ -282,7 +286,7 @@ class AniFormer(nn.Module):
         checkpointed = self.activation_checkpointing
         points, prior = driving, None
         if self.config.output == "transfer":
-            prior = deformation_transfer(driving, target, faces)
+            prior = self.prior(driving, target, faces)
             points = torch.cat([driving, prior - driving], dim=-1)
         features = run_block(self.extractor, checkpointed, points) + self.temporal_embedding[:, None, :]  # eq. 1
         if self.config.attention == "cross":

@@ -10,7 +10,7 @@ CPU uses) for `--steps` steps. What is measured:
     cuda  torch.cuda.max_memory_allocated after the same warm-up (reset before the model is built);
           max_memory_reserved, what the caching allocator held from the device, is printed beside it
 
-and compared with `MemoryEstimate.step` (static + allocator factor x dynamic). `--fit` prints the
+and compared with `MemoryEstimate.step` (parameters + Adam's moments + allocator factor x dynamic). `--fit` prints the
 allocator factor that makes the median error zero.
 
     python bench/memory_calibration.py                       # the default CPU grid, Markdown table
@@ -165,9 +165,10 @@ def measure(model: dict, vertices: int, batch: int, precision: str = "fp32", dev
 def predict(model: dict, vertices: int, batch: int, precision: str, device: str, model_name: str = "aniformer",
             mmap: bool = False, activation_checkpointing: bool = False):
     from aniformer.memory import predict_step_memory
+    from aniformer.models import model_config
 
     kind = "cuda" if device.startswith("cuda") else ("cpu-mmap" if mmap else "cpu")
-    return predict_step_memory(model_name, model, vertices=vertices, batch=batch, precision=precision,
+    return predict_step_memory(model_config(model_name, model), vertices=vertices, batch=batch, precision=precision,
                                device=device, prefetch_batches=0, allocator_kind=kind,
                                activation_checkpointing=activation_checkpointing)
 

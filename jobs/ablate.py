@@ -123,7 +123,7 @@ def _notes(specs: dict, ablation, pairs: int, seed: int) -> list[str]:
              "shuffling it was trained with (the baselines: unshuffled). Variants (overrides of the base config"
              + (f", after `{' '.join(ablation.common)}` for every row" if ablation.common else "") + "):", ""]
     return notes + [f"- {row}: `{' '.join(ablation.variants[row]) or '(base config)'}` — "
-                    f"{spec.model_name}, {parameter_count(spec.model_name, spec.model):,} parameters, "
+                    f"{spec.model_name}, {parameter_count(spec.model):,} parameters, "
                     f"shuffle `{spec.data.shuffle}`" for row, spec in specs.items()]
 
 

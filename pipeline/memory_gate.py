@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass
 
 from aniformer.memory import predict_step_memory
+from aniformer.models import ModelConfig
 from pipeline.run_spec import resolve_precision
 from pipeline.sweep_config import SweepConfig
 
@@ -28,7 +29,7 @@ class BatchPlan:
         return dataclasses.asdict(self)
 
 
-def plan_batch(model_name: str, config, *, vertices, batch: int, grad_accumulation: int = 1,
+def plan_batch(config: ModelConfig, *, vertices, batch: int, grad_accumulation: int = 1,
                limit_gb: float | None, **kwargs) -> BatchPlan:
     """Halve the batch (doubling gradient accumulation) until the predicted peak fits `limit_gb`.
 
@@ -36,7 +37,7 @@ def plan_batch(model_name: str, config, *, vertices, batch: int, grad_accumulati
     does, "skipped_memory" if not even batch 1 does. Nothing is allocated to find out.
     """
     def predict(b: int) -> float:
-        return predict_step_memory(model_name, config, vertices=vertices, batch=b, **kwargs).total_gb
+        return predict_step_memory(config, vertices=vertices, batch=b, **kwargs).total_gb
 
     requested = predict(batch)
     if limit_gb is None or requested <= limit_gb:
@@ -57,10 +58,9 @@ def gate(spec, vertices: int, faces: int | None, sweep: SweepConfig):
     device = "cuda" if cfg.use_gpu else "cpu"
     # The driver cannot see the workers' GPUs; bf16 and fp16 take the same memory.
     precision = resolve_precision(cfg.precision, device, bf16_supported=True)
-    plan = plan_batch(spec.model_name, spec.model, vertices=vertices, batch=cfg.batch_size,
-                      grad_accumulation=cfg.grad_accumulation, limit_gb=sweep.memory_limit_gb,
-                      precision=precision, device=device, workers=cfg.workers, faces=faces,
-                      activation_checkpointing=cfg.activation_checkpointing)
+    plan = plan_batch(spec.model, vertices=vertices, batch=cfg.batch_size, grad_accumulation=cfg.grad_accumulation,
+                      limit_gb=sweep.memory_limit_gb, precision=precision, device=device, workers=cfg.workers,
+                      faces=faces, activation_checkpointing=cfg.activation_checkpointing)
     if plan.status == "adjusted_memory" and plan.grad_accumulation > sweep.max_grad_accumulation:
         plan = dataclasses.replace(plan, status="skipped_memory")
     return plan

@@ -65,8 +65,8 @@ def test_per_stage_heads_set_each_stages_head_dim():
     # same FLOPs (the head count splits the same matmuls), fewer log-sum-exp rows to keep
     same = AniFormerConfig(**{**TINY, "temporal": "attention"})
     assert model.forward_flops(20) == AniFormer(same).forward_flops(20)
-    fewer, _ = count_activations("aniformer", cfg, 2, (600, 600))
-    assert fewer < count_activations("aniformer", same, 2, (600, 600))[0]
+    fewer, _ = count_activations(cfg, 2, (600, 600))
+    assert fewer < count_activations(same, 2, (600, 600))[0]
 
 
 @pytest.mark.parametrize("switch", SWITCHES, ids=lambda s: "-".join(f"{k}={v}" for k, v in s.items()) or "paper")
