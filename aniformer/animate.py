@@ -30,7 +30,6 @@ translation that puts each output frame where the driver is (world space).
 
 from __future__ import annotations
 
-import functools
 import glob
 import json
 import os
@@ -45,7 +44,7 @@ import trimesh
 
 from aniformer.errors import MeshError, UserError
 from aniformer.geometry import CENTER_MODES, center_bbox
-from aniformer.io.files import atomic_path, natural_key
+from aniformer.io.files import natural_key
 from aniformer.io.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, load_mesh
 
 COMBINE_RULES = ("mean", "center")
@@ -288,20 +287,3 @@ def root_motion(driving: np.ndarray, local: np.ndarray, scale: float) -> np.ndar
 def num_windows(frames: int, window: int, outputs: slice = slice(None), combine: str = "mean") -> int:
     front, back, _ = window_plan(frames, window, outputs, combine)
     return frames + front + back - window + 1
-
-
-def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> Path:
-    """A plain OBJ (v / f lines, 1-based, 6 decimals), written atomically. Each block is one C-level format of
-    all its numbers, and the faces' block is cached per topology: an 18k-vertex frame in ~10 ms, where
-    formatting line by line took 65."""
-    vertex_lines = ("v %.6f %.6f %.6f\n" * len(vertices)) % tuple(np.asarray(vertices, np.float64).ravel().tolist())
-    faces = np.ascontiguousarray(faces, np.int64)
-    with atomic_path(path) as tmp:
-        Path(tmp).write_bytes(b"# aniformer\n" + vertex_lines.encode() + _face_lines(faces.tobytes()))
-    return Path(path)
-
-
-@functools.lru_cache(maxsize=4)
-def _face_lines(faces: bytes) -> bytes:
-    corners = np.frombuffer(faces, np.int64) + 1
-    return (("f %d %d %d\n" * (len(corners) // 3)) % tuple(corners.tolist())).encode()

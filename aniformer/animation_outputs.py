@@ -9,7 +9,7 @@ import json
 import sys
 from pathlib import Path
 
-from aniformer.animation_run import AnimateOptions, anny_topology, timed
+from aniformer.animation_run import AnimateOptions, Inference, anny_topology, timed
 from aniformer.cli.outputs import staged_output_dir
 from aniformer.io.mesh import UNITS
 
@@ -18,7 +18,7 @@ def rig_inputs(options: AnimateOptions, state: dict, target, target_faces, regis
     """(the target's vertices on an Anny topology, that topology, where each target vertex lies on it or None)
     for ``aniformer.rig.build_rig``: the registration's, else the target itself when it is an Anny mesh, else
     a registration made here (a model of absolute output registers nothing)."""
-    from aniformer.registration import Correspondence
+    from aniformer.correspondence import Correspondence
 
     if "target" in registrations:
         fit = registrations["target"]
@@ -34,8 +34,9 @@ def rig_inputs(options: AnimateOptions, state: dict, target, target_faces, regis
 def write_rig(tmp: Path, options: AnimateOptions, summary: dict, target, target_faces, world, rig_source) -> None:
     """rigged.glb and motion.bvh of the animated ``world`` frames; the rig's size and fit into ``summary``."""
     from aniformer.io.bvh import write_bvh
-    from aniformer.io.glb import write_rigged_glb
-    from aniformer.rig import build_rig, fit_rig
+    from aniformer.io.rigged_glb import write_rigged_glb
+    from aniformer.rig import build_rig
+    from aniformer.rig_motion import fit_rig
 
     rig, motion = fit_rig(build_rig(target, *rig_source, bone_names=options.bone_names), target, world)
     write_rigged_glb(tmp / "rigged.glb", target, target_faces, rig, motion, fps=summary["fps"], name=summary["name"],
@@ -51,9 +52,9 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
     ``summary["seconds"]``."""
     from tqdm import tqdm
 
-    from aniformer.animate import write_obj
     from aniformer.geometry import center_bbox, from_z_up
     from aniformer.io.glb import write_glb
+    from aniformer.io.mesh import write_obj
 
     seconds = summary["seconds"]
     world = local if translation is None else local + translation[:, None]
@@ -87,24 +88,25 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
 
 
 def write_animation(out: Path, options: AnimateOptions, state: dict, window: int, name: str, fps: float, driving,
-                    driving_faces, target, target_faces, axes: dict, inference: tuple, seconds: dict) -> dict:
-    """Place the inferred frames (``inference``: what `infer` returns) in the world, then `write_outputs` into
+                    driving_faces, target, target_faces, axes: dict, inference: Inference, seconds: dict) -> dict:
+    """Place the inferred frames in the world, then `write_outputs` into
     ``out`` with their animation.json record (returned)."""
     from aniformer.animate import root_motion
     from aniformer.geometry import center_bbox
 
-    result, combine, total, input_center, registrations, trust, scale = inference
-    local = center_bbox(result)
-    translation = None if options.center else root_motion(driving, local, scale)
+    local = center_bbox(inference.frames)
+    translation = None if options.center else root_motion(driving, local, inference.scale)
+    registrations = inference.registrations
     summary = {
         "checkpoint": str(options.checkpoint), "target": str(options.target), "driving": str(options.driving),
-        "name": name, "frames": len(result), "fps": fps, "unit": options.unit,
+        "name": name, "frames": len(local), "fps": fps, "unit": options.unit,
         "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
-        "window": window, "combine": combine, "windows": total, "input_center": input_center,
+        "window": window, "combine": inference.combine, "windows": inference.windows,
+        "input_center": inference.input_center,
         "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template)}
                        for role, fit in registrations.items()},
         "up": {role: {"axis": axis, "why": why} for role, (axis, why) in axes.items()},
-        "trust": trust.to_dict(),
+        "trust": inference.trust.to_dict(),
         "output_centred": options.center,
         "model": state["config"].get("model", {}), "epoch": state.get("epoch"),
         "seconds": seconds,

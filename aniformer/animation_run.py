@@ -137,7 +137,7 @@ def timed(seconds: dict, stage: str):
 def model_inputs(options: AnimateOptions, state: dict, config, driving, driving_faces, target, target_faces,
                  seconds: dict, registered: dict | None = None):
     """(faces, driving, target) on the topology the model runs on, the registrations that carry meshes of
-    other topologies there (`aniformer.registration.Correspondence`, by role; none for an absolute-output
+    other topologies there (`aniformer.correspondence.Correspondence`, by role; none for an absolute-output
     model) and the driver's self-check where it was registered (`aniformer.trust.Trust`, else None).
     ``registered`` holds registrations already made for these meshes ({"target": Correspondence, "driver":
     (Correspondence, Trust)}, jobs/retarget.py's shared ones); the others are made here."""
@@ -146,7 +146,7 @@ def model_inputs(options: AnimateOptions, state: dict, config, driving, driving_
     registrations, driver_trust = {}, None
     if getattr(config, "output", "absolute") == "absolute":  # no vertex correspondence needed
         return target_faces, driving, target, registrations, driver_trust
-    from aniformer.registration import Correspondence, register_clip
+    from aniformer.correspondence import Correspondence, register_clip
     from aniformer.synth.bodies import TOPOLOGIES, BodyModel
 
     registered = registered or {}
@@ -179,12 +179,23 @@ def _report_fit(role: str, fit, template, seconds: float) -> None:
           f"{seconds:.1f} s", file=sys.stderr)
 
 
+@dataclass(frozen=True)
+class Inference:
+    """What `infer` made: the target's animated frames, and how they were made."""
+
+    frames: object  # (frames, V, 3) the target animated, z up, centred per frame as the model's input was
+    combine: str  # how overlapping windows' frames were combined
+    windows: int
+    input_center: str
+    registrations: dict  # role ("target", "driver") -> the `Correspondence` that carried it to the model's topology
+    trust: object  # the self-check's `aniformer.trust.Trust`
+    scale: float  # the target's body size over the driver's (root motion is scaled by it)
+
+
 def infer(options: AnimateOptions, model, state: dict, driving, driving_faces, target, target_faces, device,
-          seconds: dict, registered: dict | None = None):
+          seconds: dict, registered: dict | None = None) -> Inference:
     """The target's animated frames (sliding windows of the model) and how they were made (each stage's
-    time into ``seconds``; ``registered``: `model_inputs`):
-    (frames, combine, windows, input_center, registrations, the self-check's ``Trust``, the size of the
-    target's body over the driver's)."""
+    time into ``seconds``; ``registered``: `model_inputs`)."""
     import numpy as np
     import torch
     from tqdm import tqdm
@@ -214,7 +225,7 @@ def infer(options: AnimateOptions, model, state: dict, driving, driving_faces, t
     with timed(seconds, "self-check"):
         trust = animation_trust(result, target, target_faces, registrations.get("target"), driver_trust)
     scale = body_scale(target, target_faces, driving[0], driving_faces)
-    return result, combine, total, input_center, registrations, trust, scale
+    return Inference(result, combine, total, input_center, registrations, trust, scale)
 
 
 def animate_files(options: AnimateOptions, out: Path, device, load_model: Callable[[], tuple]):
@@ -239,7 +250,7 @@ def animate_files(options: AnimateOptions, out: Path, device, load_model: Callab
     loaded = time.perf_counter()
     seconds = {"load": round(loaded - start, 3)}
     inference = infer(options, model, state, driving, driving_faces, target, target_faces, device, seconds)
-    trust = inference[5]
+    trust = inference.trust
     if not trust.ok and not options.force:
         raise UserError(f"the self-check does not trust the result, nothing written: {trust.reason()}; check the "
                         f"inputs' up axis (read as {axes['target'][0]} for the target, {axes['driver'][0]} for the "

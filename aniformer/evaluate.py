@@ -1,5 +1,5 @@
-"""Evaluation: PMD (x1e-4) of models and baselines over the pair splits of a mesh bank, a noise
-sweep, and the Table-2-style report (Markdown, CSV, PNG). numpy + torch + matplotlib only.
+"""Evaluation: PMD (x1e-4) of models and baselines over the pair splits of a mesh bank and a noise
+sweep (their Table-2-style report: ``aniformer.io.report``). numpy + torch only.
 
 Every contender is a callable ``predict(driving (B, T, V1, 3), target (B, V2, 3), faces) -> (B, T', V2, 3)``
 (``faces``: the pairs' ``target_faces`` where the sampler gives them, for models that transfer along edges)
@@ -20,9 +20,7 @@ the same noisy inputs at a given level.
 
 from __future__ import annotations
 
-import csv
 import functools
-import io
 import math
 import zlib
 from collections.abc import Callable, Sequence
@@ -198,20 +196,6 @@ def clip_accelerations(contenders: Sequence[Contender], clips, split: str, *, pa
     return {name: np.asarray(values) for name, values in scores.items()}
 
 
-def ratio_rows(table: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
-    """Each model row (not a baseline) of ``table`` divided by the deformation transfer alone and by the
-    better trivial baseline (min of copy-driver and static target), where those rows are present."""
-    models = [name for name in table if name not in BASELINES]
-    references = {}
-    if TRANSFER in table:
-        references["transfer"] = table[TRANSFER]
-    if COPY_DRIVER in table and STATIC_TARGET in table:
-        references["min(copy-driver, static target)"] = {
-            s: min(table[COPY_DRIVER][s], table[STATIC_TARGET][s]) for s in table[COPY_DRIVER]}
-    return {f"{name} ÷ {label}": {s: table[name][s] / reference[s] if reference[s] > 0 else math.nan for s in reference}
-            for label, reference in references.items() for name in models}
-
-
 def noise_sweep(contenders: Sequence[Contender], samplers: Samplers, split: str, levels: Sequence[float], *,
                 pairs: int, batch_size: int = 16, seed: int = 0,
                 progress: Callable[[str, float], None] | None = None) -> dict[str, dict[float, float]]:
@@ -245,82 +229,6 @@ def parse_levels(text: str) -> list[float]:
     return sorted(set(levels))
 
 
-# --------------------------------------------------------------------------------------------
-# Reports
-# --------------------------------------------------------------------------------------------
-
-
-def _fmt(value: float) -> str:
-    return f"{value:.2f}" if math.isfinite(value) else "n/a"
-
-
-def table_markdown(table: dict[str, dict[str, float]], splits: Sequence[str], descriptions: dict[str, str] | None = None,
-                   title: str | None = "PMD (×10⁻⁴, lower is better)", notes: Sequence[str] = (),
-                   ratios: bool = False) -> str:
-    """Rows: contenders; columns: splits; the best of each column in bold. ``ratios``: then each model's
-    ratio to the transfer alone and to the better trivial baseline (``ratio_rows``)."""
-    best = {s: min((row[s] for row in table.values() if math.isfinite(row[s])), default=math.nan) for s in splits}
-    lines = [f"**{title}**", ""] if title else []
-    lines += ["| method | " + " | ".join(splits) + " |", "|---|" + "---:|" * len(splits)]
-    for name, row in table.items():
-        cells = [f"**{_fmt(row[s])}**" if row[s] == best[s] and len(table) > 1 else _fmt(row[s]) for s in splits]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    for name, row in (ratio_rows(table) if ratios else {}).items():
-        lines.append(f"| {name} | " + " | ".join(_fmt(row[s]) for s in splits) + " |")
-    if descriptions:
-        lines += [""] + [f"- `{s}`: {descriptions[s]}" for s in splits if s in descriptions]
-    if notes:
-        lines += [""] + [f"{n}" for n in notes]
-    return "\n".join(lines) + "\n"
-
-
-def table_csv(table: dict[str, dict[str, float]], splits: Sequence[str]) -> str:
-    out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(["method", *splits])
-    for name, row in table.items():
-        writer.writerow([name, *(f"{row[s]:.6g}" for s in splits)])
-    return out.getvalue()
-
-
-def sweep_csv(sweep: dict[str, dict[float, float]]) -> str:
-    out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(["method", "noise_m", "pmd_x1e4"])
-    for name, row in sweep.items():
-        for level, value in row.items():
-            writer.writerow([name, f"{level:g}", f"{value:.6g}"])
-    return out.getvalue()
-
-
-def plot_sweep(sweep: dict[str, dict[float, float]], path, split: str) -> None:
-    """PMD vs noise amplitude, one line per contender (log y when the values span > 30x)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.5), dpi=120)
-    values = []
-    for name, row in sweep.items():
-        levels = sorted(row)
-        ax.plot([lv * 1000 for lv in levels], [row[lv] for lv in levels], marker="o", label=name)
-        values += [row[lv] for lv in levels]
-    positive = [v for v in values if v > 0 and math.isfinite(v)]
-    if positive and max(positive) / min(positive) > 30:
-        ax.set_yscale("log")
-    ax.set_xlabel("uniform noise on driving vertices, ± mm")
-    ax.set_ylabel("PMD (×10⁻⁴)")
-    ax.set_title(f"robustness to driver noise ({split})", fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    try:
-        fig.savefig(path, format="png")
-    finally:
-        plt.close(fig)
-
-
 def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[str], *, pairs: int,
                 topology: str | None = None, device: str | torch.device = "cpu", batch_size: int = 8,
                 progress: Callable[[], None] | None = None,
@@ -334,7 +242,7 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
     (``animate.animate_sequence``): every frame is scored. ``refused``, when given, gets {variant:
     per pair, whether the self-check refuses the model's result} (``trust.animation_trust``)."""
     from aniformer.animate import animate_sequence
-    from aniformer.registration import Correspondence, register_clip
+    from aniformer.correspondence import Correspondence, register_clip
     from aniformer.synth.stream import _body_model
     from aniformer.synth.variants import variant_pairs
     from aniformer.transfer import deformation_transfer

@@ -92,7 +92,7 @@ def part_labels(topology: str) -> tuple[np.ndarray, tuple[str, ...]]:
 
 def registration_checks(correspondence, role: str = "") -> list[Check]:
     """``part gap``, ``uncovered``, ``flipped`` and ``part flipped`` of an
-    ``aniformer.registration.Correspondence`` (of the mesh of ``role``: target, driver)."""
+    ``aniformer.correspondence.Correspondence`` (of the mesh of ``role``: target, driver)."""
     height = correspondence.fitted.height
     parts, names = part_labels(correspondence.topology)
     gaps = np.array([np.sqrt(np.square(correspondence.template_gap[parts == k]).mean()) if (parts == k).any() else 0.0
@@ -103,7 +103,7 @@ def registration_checks(correspondence, role: str = "") -> list[Check]:
                                    vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1)
     far = correspondence.mesh_gap[faces].mean(1) > UNCOVERED_DISTANCE * height
     uncovered = float(area[far].sum() / max(area.sum(), 1e-12))
-    from aniformer.registration import normals
+    from aniformer.surface import normals
 
     template_normals, _ = normals(correspondence.fitted.vertices, correspondence.template_faces)
     _, mesh_normals = normals(vertices, faces)
@@ -151,7 +151,7 @@ class Trust:
 def animation_trust(result: np.ndarray, target: np.ndarray, target_faces: np.ndarray, target_fit=None,
                     driver_trust: Trust | None = None) -> Trust:
     """The self-check of an animation ``result (T, N, 3)`` of ``target (N, 3)``: the driver's registration
-    (``driver_trust``, from ``aniformer.registration.register_clip``), the target's (``target_fit``, a
+    (``driver_trust``, from ``aniformer.correspondence.register_clip``), the target's (``target_fit``, a
     ``Correspondence``), each where there was one, the result's stretch, and ``near limits``."""
     registered = [list(driver_trust.checks)] if driver_trust is not None else []
     if target_fit is not None:

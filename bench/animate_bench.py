@@ -49,7 +49,7 @@ def subdivided(vertices: np.ndarray, faces: np.ndarray, count: int) -> tuple[np.
 
 def make_inputs(root: Path, frames: int, targets: list[str]) -> dict[str, Path]:
     """The driving clip (``root/clip_<frames>/``) and the target meshes (``root/target_<name>.obj``)."""
-    from aniformer.animate import write_obj
+    from aniformer.io.mesh import write_obj
     from aniformer.synth.bodies import BodyModel, sample_identities
     from aniformer.synth.motions import sample_motion
 

@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from aniformer.animate import driving_files, load_driving, write_obj
+from aniformer.animate import driving_files, load_driving
 from aniformer.geometry import center_bbox, from_z_up, to_z_up
+from aniformer.io.mesh import write_obj
 from aniformer.io.render import render_filmstrip
 from aniformer.metrics import PMD_SCALE
 from aniformer.synth.stream import StreamPairs

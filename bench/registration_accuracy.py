@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aniformer.registration import Correspondence
+from aniformer.correspondence import Correspondence
 from aniformer.synth.stream import StreamPairs, _generator
 from aniformer.synth.variants import posed_character, random_rotation
 from aniformer.trust import registration_checks

@@ -15,9 +15,9 @@ import shutil
 import sys
 from pathlib import Path
 
-from aniformer.animate import driving_files, load_driving, write_obj
-from aniformer.io.mesh import load_mesh
-from aniformer.registration import closest_points
+from aniformer.animate import driving_files, load_driving
+from aniformer.io.mesh import load_mesh, write_obj
+from aniformer.surface import closest_points
 from aniformer.synth.variants import remesh
 
 

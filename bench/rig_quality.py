@@ -29,12 +29,14 @@ VARIANTS = ("same", "remeshed")
 def main() -> None:
     from aniformer.animate import animate_sequence
     from aniformer.checkpoint import PRETRAINED, model_from_checkpoint
+    from aniformer.correspondence import Correspondence
     from aniformer.evaluate import model_contender
     from aniformer.geometry import center_bbox
-    from aniformer.io.glb import write_glb, write_rigged_glb
+    from aniformer.io.glb import write_glb
+    from aniformer.io.rigged_glb import write_rigged_glb
     from aniformer.metrics import PMD_SCALE, pmd_per_frame
-    from aniformer.registration import Correspondence
-    from aniformer.rig import build_rig, fit_rig, skin
+    from aniformer.rig import build_rig, skin
+    from aniformer.rig_motion import fit_rig
     from aniformer.synth.stream import TEST_SPLITS, StreamPairs
     from aniformer.synth.variants import variant_pairs
     from aniformer.transfer import deformation_transfer

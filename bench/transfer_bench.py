@@ -36,7 +36,7 @@ def one(solver: str, mesh: str) -> dict:
     from animate_bench import subdivided
 
     from aniformer import transfer
-    from aniformer.registration import closest_points
+    from aniformer.surface import closest_points
     from aniformer.synth.bodies import BodyModel, sample_identities
     from aniformer.synth.motions import sample_motion
 

@@ -21,10 +21,10 @@ import numpy as np
 import torch
 
 from aniformer.checkpoint import PRETRAINED, model_from_checkpoint
+from aniformer.correspondence import Correspondence
 from aniformer.evaluate import model_contender
 from aniformer.geometry import center_bbox
 from aniformer.metrics import PMD_SCALE
-from aniformer.registration import Correspondence
 from aniformer.synth.stream import StreamPairs
 from aniformer.synth.variants import variant_pairs
 from aniformer.trust import animation_trust, injected_failures

@@ -140,8 +140,9 @@ def main(argv: list[str]) -> None:
                         "(they are scored on the same pairs)")
     out, name, bank = RunJobParser.locations(args)
 
-    from aniformer.evaluate import DEFAULT_CLIP_FRAMES, table_csv, table_markdown
+    from aniformer.evaluate import DEFAULT_CLIP_FRAMES
     from aniformer.io.files import atomic_path
+    from aniformer.io.report import table_csv, table_markdown
     from pipeline.ablation import log_pmd_table, slug
     from pipeline.cluster import connect
     from pipeline.console import quiet_ray

@@ -64,7 +64,7 @@ def main(argv: list[str]) -> None:
 
 
 def _write(out: Path, overwrite: bool, driving, truth, target, faces, info: dict) -> None:
-    from aniformer.animate import write_obj
+    from aniformer.io.mesh import write_obj
 
     with staged_output_dir(out, overwrite) as tmp:
         for directory, frames in (("driving", driving), ("ground_truth", truth)):

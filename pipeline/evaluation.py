@@ -138,7 +138,7 @@ def results_report(options: EvaluateOptions, state: dict, table: dict, spread: d
                    accelerations: dict | None = None) -> tuple[str, dict]:
     """The results as Markdown (mean and SD tables with each model's ratios, the acceleration errors, the
     noise sweep, --targets' refusals) and as the results.json record."""
-    from aniformer.evaluate import table_markdown
+    from aniformer.io.report import table_markdown
 
     splits, pairs, seed, noise_split, clip_frames = data.splits, data.pairs, data.seed, data.noise_split, data.clip_frames
     notes = [*data.notes, f"{pairs} pairs per split (seed {seed}, window as each model's, vertex shuffling "
@@ -181,7 +181,7 @@ def results_report(options: EvaluateOptions, state: dict, table: dict, spread: d
 def write_results(out: Path, options: EvaluateOptions, markdown: str, result: dict, table: dict, sweep, config: dict,
                   name: str) -> str | None:
     """results.md/.csv/.json (and the noise sweep's CSV and plot), staged, and the MLflow run; its id."""
-    from aniformer.evaluate import plot_sweep, sweep_csv, table_csv
+    from aniformer.io.report import plot_sweep, sweep_csv, table_csv
 
     splits, pairs, seed = result["splits"], result["pairs"], result["seed"]
     with staged_output_dir(out, options.overwrite) as tmp:

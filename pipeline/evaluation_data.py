@@ -115,7 +115,7 @@ def _target_data(options: EvaluateOptions, cfg: DataConfig, pairs: int, seed: in
              "the copy-driver is carried to the target's vertices through the ground-truth correspondence."]
     if "foreign_driver" in variants:
         notes.append(f"`foreign_driver`: the driver is registered on its whole {DRIVER_FRAMES}-frame clip "
-                     "(aniformer/registration.py: register_clip), and the model slides its window over the clip "
+                     "(aniformer/correspondence.py: register_clip), and the model slides its window over the clip "
                      "(aniformer/animate.py); every frame is scored.")
     return EvalData(source, pairs, seed, f"stream, topology {source.topology}", {v: VARIANTS[v] for v in variants}, notes)
 

@@ -17,7 +17,7 @@ reaches the driver through the pair's last `ObjectRef`.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -101,7 +101,7 @@ def load_clip(path: str, up: str, unit: str, max_vertices: int, max_frames: int,
 @ray.remote(num_returns=2, max_retries=MAX_RETRIES)
 def register_target(mesh: Mesh, topology: str):
     """(the target's `Correspondence` on ``topology``, {"rms_m", "seconds"})."""
-    from aniformer.registration import Correspondence
+    from aniformer.correspondence import Correspondence
 
     began = time.perf_counter()
     fit = Correspondence(mesh.vertices, mesh.faces, topology)
@@ -111,7 +111,7 @@ def register_target(mesh: Mesh, topology: str):
 @ray.remote(num_returns=2, max_retries=MAX_RETRIES)
 def register_clip_task(clip: Clip, topology: str):
     """((the clip's `Correspondence`, its `Trust`), {"rms_m", "seconds"}): registered on the whole clip."""
-    from aniformer.registration import register_clip
+    from aniformer.correspondence import register_clip
 
     began = time.perf_counter()
     fit, trust = register_clip(clip.driving, clip.faces, topology)
@@ -159,9 +159,8 @@ class Animator:
         inference = infer(options, self.model, self.state, clip.driving, clip.faces, target.vertices, target.faces,
                           self.device, seconds, registered)
         seconds["inference"] = round(time.perf_counter() - began, 3)
-        trust = inference[5]
-        if not trust.ok and not options.force:
-            return Refused(trust.reason())
+        if not inference.trust.ok and not options.force:
+            return Refused(inference.trust.reason())
         return inference, seconds, self.model.config.window
 
 
@@ -177,8 +176,8 @@ def write_pair(options: AnimateOptions, out: Path, state: dict, target: Mesh, cl
     from aniformer.animation_outputs import write_animation
 
     inference, seconds, window = animated
-    registrations = copy.deepcopy(inference[4])  # writable arrays for the rig's fit (see `Writable`)
-    inference = (*inference[:4], registrations, *inference[5:])
+    # writable arrays for the rig's fit (see `Writable`)
+    inference = replace(inference, registrations=copy.deepcopy(inference.registrations))
     began = time.perf_counter()
     name = f"{Path(target.path).stem}_{Path(clip.path).name}"
     write_animation(out, options, state, window, name, clip.fps, clip.driving, clip.faces, target.vertices,

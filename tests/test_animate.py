@@ -35,7 +35,6 @@ from aniformer.animate import (
     num_windows,
     root_motion,
     window_plan,
-    write_obj,
 )
 from aniformer.checkpoint import save_checkpoint
 from aniformer.cli.exits import run
@@ -43,6 +42,7 @@ from aniformer.errors import MeshError, UserError
 from aniformer.geometry import center_bbox
 from aniformer.io.files import natural_key
 from aniformer.io.glb import MAX_MORPH_TARGETS, mesh_chunks, read_glb, to_gltf_axes, write_glb
+from aniformer.io.mesh import write_obj
 from aniformer.model import AniFormer, AniFormerConfig
 
 ROOT = Path(__file__).resolve().parents[1]

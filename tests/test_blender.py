@@ -18,9 +18,8 @@ import pytest
 from test_animate import animate_main, body_pixels, jump_and_walk, make_checkpoint, world_frames, write_driver
 
 import aniformer.io.glb
-from aniformer.animate import write_obj
 from aniformer.io.glb import write_glb
-from aniformer.io.mesh import load_mesh
+from aniformer.io.mesh import load_mesh, write_obj
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "bench" / "blender_import.py"

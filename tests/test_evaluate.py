@@ -24,13 +24,11 @@ from aniformer.evaluate import (
     evaluate_table,
     noise_sweep,
     parse_levels,
-    ratio_rows,
     split_pmd,
     static_target_contender,
-    table_csv,
-    table_markdown,
 )
 from aniformer.geometry import center_bbox
+from aniformer.io.report import ratio_rows, table_csv, table_markdown
 from aniformer.model import AniFormer, AniFormerConfig
 from aniformer.models import NPT, NPTConfig
 

@@ -49,7 +49,7 @@ def test_registration_carries_poses_to_another_topology_and_back(stream):
     """An Anny body at 1,229 vertices registered onto the 369-vertex template: the fitted surface is
     within 3 cm, and the ground-truth poses read on the template and carried back land within a
     small PMD of the truth (the route's floor), far below the unmoved target."""
-    from aniformer.registration import Correspondence
+    from aniformer.correspondence import Correspondence
     from aniformer.synth.stream import _body_model, pose_pairs
 
     body = _body_model("notoes_collapse10pc")
@@ -143,7 +143,7 @@ def test_self_check_trusts_a_good_registration_and_refuses_injected_failures(str
     """A body lying on its side, decimated to its own mesh: registered in any orientation, its result
     through the deformation transfer is trusted; the same registration turned backwards, tilted, or with
     an arm on the other arm is refused."""
-    from aniformer.registration import Correspondence
+    from aniformer.correspondence import Correspondence
     from aniformer.synth.stream import _body_model, pose_pairs
     from aniformer.synth.variants import remesh
     from aniformer.transfer import deformation_transfer
@@ -192,7 +192,7 @@ def _stream_draws():
 def test_registration_round_trip_is_exact_on_the_template_itself():
     """A target that is the template topology in a shuffled order: reading the mesh on the template
     and carrying the template back reproduces the mesh (up to float error)."""
-    from aniformer.registration import Correspondence
+    from aniformer.correspondence import Correspondence
     from aniformer.synth.stream import _body_model
 
     body = _body_model(MODEL_TOPOLOGY)
@@ -212,7 +212,7 @@ def test_weighted_rotation_mean_is_the_chordal_mean(spread):
     """The power-iterated quaternion mean equals the rotation nearest to sum_k w_k R_k (an SVD solve)."""
     import roma
 
-    from aniformer.registration import weighted_rotation_mean
+    from aniformer.correspondence import weighted_rotation_mean
 
     generator = torch.Generator().manual_seed(0)
     centre = roma.random_rotvec(500, generator=generator)
@@ -229,10 +229,11 @@ def test_extremities_of_posed_characters_are_labelled_where_they_are(stream):
     the head region is on the head, the hand and foot regions on the hands and feet (each pair either
     way round), as Anny's own frame places them on the true body. Pairs 1-3 are ones where a belly
     or shoulder point was taken for the head before (partner error 46-76 cm; now 10 cm)."""
-    from aniformer.registration import _template, geodesic_frame
+    from aniformer.registration import anny_template
+    from aniformer.surface import geodesic_frame
     from aniformer.synth.variants import posed_character
 
-    template = _template(MODEL_TOPOLOGY).geodesic.regions
+    template = anny_template(MODEL_TOPOLOGY).geodesic.regions
     for index in (1, 2, 3):
         vertices, faces, truth = posed_character(stream, "seen", 0, index, MODEL_TOPOLOGY)
         found = [vertices[r].mean(0) for r in geodesic_frame(vertices, faces).regions]
@@ -248,7 +249,7 @@ def test_a_strongly_posed_character_is_registered_onto_its_true_body(stream):
     """A posed character of the validation split (pair 1) registered as a user's
     mesh: Anny's fitted template within 5 cm of the true body on average (before the head labelling and
     the skeleton's fit to its geodesic partners: 26.5 cm, limbs swapped; bench/registration_accuracy.py)."""
-    from aniformer.registration import Correspondence
+    from aniformer.correspondence import Correspondence
     from aniformer.synth.variants import posed_character
 
     vertices, faces, truth = posed_character(stream, "seen", 0, 1, MODEL_TOPOLOGY)

@@ -15,9 +15,9 @@ import pytest
 import torch
 from test_animate import TINY_MODEL, animate_main, make_checkpoint
 
-from aniformer.animate import write_obj
 from aniformer.checkpoint import model_from_checkpoint
 from aniformer.cli.exits import run
+from aniformer.io.mesh import write_obj
 
 
 @pytest.fixture(scope="module")

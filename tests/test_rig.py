@@ -141,7 +141,8 @@ def test_fitted_weights_are_the_ones_that_skinned_the_frames():
     the frames tell them apart (module doc, step 4)."""
     import torch
 
-    from aniformer.rig import RigMotion, build_rig, fit_weights, forward_kinematics, skin
+    from aniformer.rig import build_rig, forward_kinematics, skin
+    from aniformer.rig_motion import RigMotion, fit_weights
     from aniformer.synth.bodies import BodyModel
 
     body = BodyModel(MODEL_TOPOLOGY)

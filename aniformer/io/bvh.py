@@ -37,7 +37,7 @@ def depth_first(parents: np.ndarray) -> list[int]:
 
 
 def write_bvh(path: str | os.PathLike, rig, motion, fps: float, metres_per_unit: float = 1.0) -> Path:
-    """Write ``rig`` (``aniformer.rig.Rig``) and ``motion`` (``aniformer.rig.RigMotion``) as a BVH file,
+    """Write ``rig`` (``aniformer.rig.Rig``) and ``motion`` (``aniformer.rig_motion.RigMotion``) as a BVH file,
     atomically (see the module doc for the axes, unit and Euler order)."""
     bind_rotation, bind_position = rig.bind[:, :3, :3], rig.bind[:, :3, 3]
     world = np.asarray(motion.world, np.float64)

@@ -4,7 +4,8 @@
 clip split into meshes of at most ``FRAMES_PER_MESH`` frames, each a base POSITION plus one morph
 target per later frame switched by sparse one-hot weights, the chunk on show picked by its node's
 scale, and the root motion on the root node; STEP keys at k / fps and an end key at N / fps.
-``read_glb`` reads such a file back in the project's axes. See docs/animate.md for the layout.
+``read_glb`` reads such a file back in the project's axes. See docs/animate.md for the layout. The
+skinned writer (rigged.glb) is ``aniformer.io.rigged_glb``, on this module's buffer and document.
 """
 
 from __future__ import annotations
@@ -19,8 +20,8 @@ import numpy as np
 
 from aniformer.io.files import atomic_path
 
-_FLOAT, _UINT, _USHORT = 5126, 5125, 5123
-_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+_FLOAT, UINT, USHORT = 5126, 5125, 5123
+ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 _GLB_MAGIC, _JSON_CHUNK, _BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
 FRAMES_PER_MESH = 256  # frames per mesh by default: WebGL2 guarantees 256 texture-array layers
 MAX_MORPH_TARGETS = 2048  # three.js keeps a mesh's morph targets in one texture array; beyond this it freezes
@@ -51,7 +52,7 @@ def glb_size(frames: int, vertices: int, triangles: int, frames_per_mesh: int = 
     return positions + 12 * triangles + 32 * frames  # + keys, sparse weights, translations
 
 
-class _Buffer:
+class GlbBuffer:
     """The GLB's binary chunk and the bufferViews / accessors that point into it."""
 
     def __init__(self):
@@ -92,20 +93,20 @@ class _Buffer:
         hot = np.arange(1, keys, dtype=np.uint32)
         index = hot * targets + np.minimum(hot, targets) - 1  # the end key repeats the last frame
         sparse = {"count": len(index),
-                  "indices": {"bufferView": self.view(index), "componentType": _UINT},
+                  "indices": {"bufferView": self.view(index), "componentType": UINT},
                   "values": {"bufferView": self.view(np.ones(len(index), np.float32))}}
         return self.accessor(None, "SCALAR", keys * targets, sparse=sparse)
 
 
-def _mesh_and_weights(buf: _Buffer, frames: np.ndarray, indices: int, name: str) -> tuple[dict, int | None]:
+def _mesh_and_weights(buf: GlbBuffer, frames: np.ndarray, indices: int, name: str) -> tuple[dict, int | None]:
     """A mesh whose base is ``frames[0]`` with one morph target per later frame, and its weights output."""
     base, deltas = frames[0], frames[1:] - frames[0]
-    position = buf.accessor(buf.view(base, _ARRAY_BUFFER), "VEC3", len(base), bounds=base)
+    position = buf.accessor(buf.view(base, ARRAY_BUFFER), "VEC3", len(base), bounds=base)
     primitive = {"attributes": {"POSITION": position}, "indices": indices, "mode": 4, "material": 0}
     mesh = {"name": name, "primitives": [primitive]}
     if not len(deltas):
         return mesh, None
-    view = buf.view(deltas, _ARRAY_BUFFER, stride=12)  # several accessors in one view need byteStride
+    view = buf.view(deltas, ARRAY_BUFFER, stride=12)  # several accessors in one view need byteStride
     V = len(base)
     primitive["targets"] = [{"POSITION": buf.accessor(view, "VEC3", V, offset=k * V * 12, bounds=d)}
                             for k, d in enumerate(deltas)]
@@ -136,20 +137,20 @@ def write_glb(path: str | os.PathLike, frames: np.ndarray, faces: np.ndarray, fp
     (root motion). Every channel is STEP with keys k / fps and one end key at N / fps, so the clip
     lasts N / fps. See docs/animate.md for the layout.
     """
-    frames = to_gltf_axes(_checked_frames(frames, fps))
+    frames = to_gltf_axes(checked_frames(frames, fps))
     faces = np.ascontiguousarray(faces, np.uint32)
-    buf = _Buffer()
-    indices = buf.accessor(buf.view(faces.ravel(), _ELEMENT_ARRAY_BUFFER), "SCALAR", faces.size, _UINT,
+    buf = GlbBuffer()
+    indices = buf.accessor(buf.view(faces.ravel(), ELEMENT_ARRAY_BUFFER), "SCALAR", faces.size, UINT,
                            bounds=faces.reshape(-1, 1))
-    animation = _Animation(buf, len(frames), fps)
+    animation = GltfAnimation(buf, len(frames), fps)
     nodes, meshes = _chunk_nodes(buf, animation, frames, indices, name, frames_per_mesh)
     if translation is not None:
         _animate_root(buf, animation, nodes[0], to_gltf_axes(np.asarray(translation, np.float32)))
-    gltf = _document(buf, animation, nodes, meshes, name, fps, extras)
-    return _write_glb_file(Path(path), gltf, b"".join(buf.blobs))
+    gltf = gltf_document(buf, animation, nodes, meshes, name, fps, extras)
+    return write_glb_file(Path(path), gltf, b"".join(buf.blobs))
 
 
-def _checked_frames(frames: np.ndarray, fps: float) -> np.ndarray:
+def checked_frames(frames: np.ndarray, fps: float) -> np.ndarray:
     frames = np.asarray(frames, np.float32)
     if frames.ndim != 3 or frames.shape[2] != 3 or len(frames) == 0:
         raise ValueError(f"frames must have shape (N, V, 3) with N >= 1, got {frames.shape}")
@@ -160,10 +161,10 @@ def _checked_frames(frames: np.ndarray, fps: float) -> np.ndarray:
     return frames
 
 
-class _Animation:
+class GltfAnimation:
     """The clip's STEP samplers and channels, keyed at k / fps for frames k = 0 .. N (N: the end key)."""
 
-    def __init__(self, buf: _Buffer, frames: int, fps: float):
+    def __init__(self, buf: GlbBuffer, frames: int, fps: float):
         self.buf, self.frames = buf, frames
         self.all_times = (np.arange(frames + 1) / fps).astype(np.float32)
         self.time_view = buf.view(self.all_times) if frames > 1 else None  # a single frame has no animation
@@ -181,7 +182,7 @@ class _Animation:
         self.channels.append({"sampler": len(self.samplers) - 1, "target": {"node": node, "path": path}})
 
 
-def _chunk_nodes(buf: _Buffer, animation: _Animation, frames: np.ndarray, indices: int, name: str,
+def _chunk_nodes(buf: GlbBuffer, animation: GltfAnimation, frames: np.ndarray, indices: int, name: str,
                  frames_per_mesh: int) -> tuple[list[dict], list[dict]]:
     """The root node ``name`` and one child node and mesh per chunk of frames, their channels added."""
     N = len(frames)
@@ -202,7 +203,7 @@ def _chunk_nodes(buf: _Buffer, animation: _Animation, frames: np.ndarray, indice
     return nodes, meshes
 
 
-def _animate_root(buf: _Buffer, animation: _Animation, root: dict, moves: np.ndarray) -> None:
+def _animate_root(buf: GlbBuffer, animation: GltfAnimation, root: dict, moves: np.ndarray) -> None:
     """Root motion on the root node: at ``moves[0]`` (y up), keyed through all of them if the clip moves."""
     root["translation"] = moves[0].astype(float).tolist()
     if animation.frames > 1:
@@ -210,7 +211,7 @@ def _animate_root(buf: _Buffer, animation: _Animation, root: dict, moves: np.nda
                       buf.array(np.concatenate([moves, moves[-1:]]), "VEC3"))
 
 
-def _document(buf: _Buffer, animation: _Animation, nodes: list[dict], meshes: list[dict], name: str,
+def gltf_document(buf: GlbBuffer, animation: GltfAnimation, nodes: list[dict], meshes: list[dict], name: str,
               fps: float, extras: dict | None) -> dict:
     """The glTF JSON: one scene of the root node, one material, one animation if anything moves."""
     N = animation.frames
@@ -236,67 +237,7 @@ _MATERIAL = {"name": "body", "doubleSided": True,
                                       "roughnessFactor": 0.8}}
 
 
-def write_rigged_glb(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, rig, motion,
-                     fps: float = 30.0, name: str = "aniformer", extras: dict | None = None) -> Path:
-    """Write a skinned mesh and its clip as a GLB, atomically: ``vertices (V, 3)`` (z up, metres: the bind
-    pose) and ``faces``, ``rig`` (``aniformer.rig.Rig``: joints, bind transforms, 4 weights per vertex) and
-    ``motion`` (``aniformer.rig.RigMotion``). y up; the mesh node (``name``) and the skeleton's root joint
-    are the scene's two roots; each joint that turns keys its local rotation at every frame and the root joint its
-    translation, STEP at k / fps plus an end key at N / fps, as ``write_glb``'s clip. No morph targets."""
-    frames = len(motion.rotations)
-    _checked_frames(motion.root[:, None], fps)
-    turn = np.eye(4)
-    turn[:3, :3] = GLTF_AXES
-    local = turn @ rig.local_bind @ turn.T
-    buf = _Buffer()
-    bind = to_gltf_axes(np.asarray(vertices, np.float32))
-    attributes = {"POSITION": buf.accessor(buf.view(bind, _ARRAY_BUFFER), "VEC3", len(bind), bounds=bind),
-                  "JOINTS_0": buf.accessor(buf.view(np.ascontiguousarray(rig.joints, np.uint16), _ARRAY_BUFFER),
-                                           "VEC4", len(bind), _USHORT),
-                  "WEIGHTS_0": buf.accessor(buf.view(np.ascontiguousarray(rig.weights, np.float32), _ARRAY_BUFFER),
-                                            "VEC4", len(bind))}
-    faces = np.ascontiguousarray(faces, np.uint32)
-    indices = buf.accessor(buf.view(faces.ravel(), _ELEMENT_ARRAY_BUFFER), "SCALAR", faces.size, _UINT,
-                           bounds=faces.reshape(-1, 1))
-    inverse_bind = (turn @ rig.inverse_bind @ turn.T).astype(np.float32)
-    inverse_bind[:, 3] = [0, 0, 0, 1]  # exactly affine, as glTF requires
-    skin = {"joints": list(range(1, len(rig.names) + 1)), "skeleton": 1,
-            "inverseBindMatrices": buf.accessor(buf.view(np.swapaxes(inverse_bind, 1, 2)), "MAT4", len(rig.names))}
-    from scipy.spatial.transform import Rotation  # here: a quarter second of imports no other job needs
-
-    turns = Rotation.from_quat(motion.rotations.reshape(-1, 4)).as_matrix().reshape(*motion.rotations.shape[:-1], 3, 3)
-    rotations = _quaternions(GLTF_AXES @ turns @ GLTF_AXES.T)  # (N, J, 4)
-    root = to_gltf_axes(np.asarray(motion.root, np.float32))
-    nodes = [{"name": name, "mesh": 0, "skin": 0}]
-    for j, label in enumerate(rig.names):  # at rest: the first frame, as write_glb's file shows it
-        nodes.append({"name": label, "translation": (root[0] if j == 0 else local[j, :3, 3]).tolist(),
-                      "rotation": rotations[0, j].tolist()})
-    for j, parent in enumerate(rig.parents):
-        if parent >= 0:
-            nodes[parent + 1].setdefault("children", []).append(j + 1)
-    animation = _Animation(buf, frames, fps)
-    if frames > 1:
-        keys = np.arange(frames + 1)
-        for j in range(len(rig.names)):
-            if np.any(rotations[:, j] != rotations[0, j]):  # a joint held still keeps its node's rotation: no channel
-                animation.add(j + 1, "rotation", keys, buf.array(np.concatenate([rotations[:, j], rotations[-1:, j]]), "VEC4"))
-        animation.add(1, "translation", keys, buf.array(np.concatenate([root, root[-1:]]), "VEC3"))
-    mesh = {"name": name, "primitives": [{"attributes": attributes, "indices": indices, "mode": 4, "material": 0}]}
-    gltf = _document(buf, animation, nodes, [mesh], name, fps, extras)
-    gltf["scenes"][0]["nodes"] = [0, 1]
-    gltf["skins"] = [skin]
-    return _write_glb_file(Path(path), gltf, b"".join(buf.blobs))
-
-
-def _quaternions(rotations: np.ndarray) -> np.ndarray:
-    """Unit quaternions (xyzw, glTF's order) of rotation matrices ``(..., 3, 3)``, normalised in float32."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(rotations.reshape(-1, 3, 3)).as_quat().reshape(*rotations.shape[:-2], 4).astype(np.float32)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
-def _write_glb_file(path: Path, gltf: dict, binary: bytes) -> Path:
+def write_glb_file(path: Path, gltf: dict, binary: bytes) -> Path:
     text = json.dumps(gltf, separators=(",", ":")).encode()
     text += b" " * ((-len(text)) % 4)
     total = 12 + 8 + len(text) + 8 + len(binary)
@@ -320,7 +261,7 @@ def read_document(path: str | os.PathLike) -> tuple[dict, Callable[[int], np.nda
     bin_start = 20 + json_len + 8
     binary = data[bin_start:bin_start + struct.unpack_from("<I", data, 20 + json_len)[0]]
     sizes = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}
-    dtypes = {_FLOAT: np.float32, _UINT: np.uint32, _USHORT: np.uint16}
+    dtypes = {_FLOAT: np.float32, UINT: np.uint32, USHORT: np.uint16}
 
     def accessor(i: int) -> np.ndarray:
         a = gltf["accessors"][i]

@@ -121,7 +121,7 @@ def preview_mesh(frames: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple
     first frame's vertices ride the closest points of the mesh (barycentric), so every frame decimates alike."""
     import trimesh
 
-    from aniformer.registration import closest_points
+    from aniformer.surface import closest_points
 
     first = np.asarray(frames[0], np.float64)
     decimated = trimesh.Trimesh(first, faces, process=False).simplify_quadric_decimation(face_count=max_faces)

@@ -52,7 +52,7 @@ import trimesh
 
 from aniformer.geometry import center_bbox, from_z_up, shuffle_vertices, to_z_up
 from aniformer.io.mesh import load_mesh
-from aniformer.registration import SurfacePoints, closest_points
+from aniformer.surface import SurfacePoints, closest_points
 from aniformer.synth.poses import sample_windows
 from aniformer.synth.stream import StreamPairs, _body_model, _choose, _generator, pose_pairs
 
