@@ -238,7 +238,7 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
     registration onto ``topology`` (default: the stream's) of the target where its faces are not
     that topology's; the copy-driver carried to the target's vertices; the static target. A
     variant with a driver of its own (``foreign_driver``) has the driver registered too, on the
-    whole clip (``registration.register_clip``), and the model slides its window over the clip
+    whole clip (``correspondence.register_clip``), and the model slides its window over the clip
     (``animate.animate_sequence``): every frame is scored. ``refused``, when given, gets {variant:
     per pair, whether the self-check refuses the model's result} (``trust.animation_trust``)."""
     from aniformer.animate import animate_sequence

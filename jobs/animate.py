@@ -23,10 +23,10 @@ centred instead.
 Outputs in ``--out``: frames/frame_NNNN.obj (one per driving frame, in the target's unit and axes),
 animation.glb (glTF 2.0: y up, metres, morph targets, lasting N / fps), preview.gif (driver |
 result) and animation.json (what was done); with ``--rig`` also rigged.glb (the target skinned to
-Anny's skeleton, the clip as joint rotations) and motion.bvh (aniformer/rig.py). They are written under a temporary name beside
-``--out`` and renamed into place when complete; an existing non-empty ``--out`` is refused unless
-``--overwrite``. Bad input (unreadable/garbage/empty meshes, NaN, coordinates beyond 1 km, bad
-faces, driving frames with other faces, meshes over ``--max-vertices``, a checkpoint that does not
+Anny's skeleton, the clip as joint rotations) and motion.bvh (aniformer/rig.py, aniformer/rig_motion.py).
+They are written under a temporary name beside ``--out`` and renamed into place when complete; an existing
+non-empty ``--out`` is refused unless ``--overwrite``. Bad input (unreadable/garbage/empty meshes, NaN,
+coordinates beyond 1 km, bad faces, driving frames with other faces, meshes over ``--max-vertices``, a checkpoint that does not
 match its config) stops with one line, exit 2.
 """
 

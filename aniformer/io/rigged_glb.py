@@ -29,7 +29,7 @@ def write_rigged_glb(path: str | os.PathLike, vertices: np.ndarray, faces: np.nd
                      fps: float = 30.0, name: str = "aniformer", extras: dict | None = None) -> Path:
     """Write a skinned mesh and its clip as a GLB, atomically: ``vertices (V, 3)`` (z up, metres: the bind
     pose) and ``faces``, ``rig`` (``aniformer.rig.Rig``: joints, bind transforms, 4 weights per vertex) and
-    ``motion`` (``aniformer.rig.RigMotion``). y up; the mesh node (``name``) and the skeleton's root joint
+    ``motion`` (``aniformer.rig_motion.RigMotion``). y up; the mesh node (``name``) and the skeleton's root joint
     are the scene's two roots; each joint that turns keys its local rotation at every frame and the root joint its
     translation, STEP at k / fps plus an end key at N / fps, as ``write_glb``'s clip. No morph targets."""
     frames = len(motion.rotations)
