@@ -22,7 +22,6 @@ paths. The run is logged to MLflow as ``retarget-<OUT name>`` (``--no-mlflow`` t
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 import tempfile
 import time
@@ -35,11 +34,9 @@ from aniformer.cli.locks import lock_output, releases_locks
 from aniformer.cli.outputs import protect_inputs
 from aniformer.errors import UserError
 from aniformer.geometry import UP_AXES
-from aniformer.io.files import atomic_path, natural_key
-from aniformer.io.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, UNITS
+from aniformer.io.mesh import DEFAULT_MAX_VERTICES, UNITS
 from jobs import animate
-
-COLUMNS = ("target", "clip", "status", "frames", "seconds", "fit_mm", "self_check")
+from pipeline.motion_library import find_library, log_run, pair_line, write_summary
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -66,29 +63,6 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def library(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, str]]:
-    """({target stem: path}, {clip name: folder}), in natural order; `UserError` for an empty or missing folder
-    or two targets of one stem (their outputs would collide)."""
-    targets_dir, clips_dir = Path(args.targets).expanduser(), Path(args.clips).expanduser()
-    for flag, folder in (("--targets", targets_dir), ("--clips", clips_dir)):
-        if not folder.is_dir():
-            raise UserError(f"{flag} {folder}: not a folder")
-    targets = {}
-    for path in sorted(targets_dir.iterdir(), key=lambda p: natural_key(p.name)):
-        if path.is_file() and path.suffix.lower() in MESH_SUFFIXES:
-            if path.stem in targets:
-                raise UserError(f"--targets: {targets[path.stem]} and {path} have one stem, their outputs would "
-                                "share OUT/<stem>/: rename one")
-            targets[path.stem] = str(path.resolve())
-    clips = {path.name: str(path.resolve()) for path in sorted(clips_dir.iterdir(), key=lambda p: natural_key(p.name))
-             if path.is_dir() and not path.name.startswith(".")}
-    if not targets:
-        raise UserError(f"--targets {targets_dir}: no mesh files ({', '.join(MESH_SUFFIXES)})")
-    if not clips:
-        raise UserError(f"--clips {clips_dir}: no sub-folders (one per clip)")
-    return targets, clips
-
-
 def pair_options(args: argparse.Namespace, target: str, clip: str, out: Path) -> AnimateOptions:
     """jobs/animate.py's options for one pair: what `animate.py` would be run with for it alone, read by its parser
     (so with its defaults)."""
@@ -97,49 +71,6 @@ def pair_options(args: argparse.Namespace, target: str, clip: str, out: Path) ->
             "--max-frames", str(args.max_frames)]
     argv += ["--rig", "--bone-names", args.bone_names] * args.rig + ["--force"] * args.force
     return options_from(AnimateOptions, animate.parse_args(argv))
-
-
-def write_summary(path: Path, rows: list[dict]) -> None:
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as file:
-        writer = csv.DictWriter(file, COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows({column: row.get(column, "") for column in COLUMNS} for row in rows)
-
-
-def pair_line(row: dict) -> str:
-    """One line per finished pair."""
-    where = f"{row['target']} x {row['clip']}"
-    if row["status"] == "ok":
-        seconds = "earlier run" if row["seconds"] == "" else f"{row['seconds']:.1f} s"
-        fit = f", fit {row['fit_mm']} mm" if row["fit_mm"] else ""
-        return f"ok       {where}: {row['frames']} frames ({seconds}){fit}, self-check {row['self_check']}"
-    return f"{row['status']:<8} {where}: {row['self_check']}"
-
-
-def log_run(args, out: Path, rows: list[dict], seconds: float, done_now: int) -> str:
-    """The MLflow run ``retarget-<OUT name>`` of this output (a rerun continues it): summary.csv, per-pair
-    metrics (frames, seconds, fit error) and the job's counts; its id."""
-    import re
-
-    from pipeline.tracking import quiet_mlflow, start_job_run
-
-    quiet_mlflow()
-    tracker = start_job_run(f"retarget-{out.name}", {"targets": args.targets, "clips": args.clips,
-                                                      "checkpoint": args.checkpoint, "rig": args.rig,
-                                                      "force": args.force, "actors": args.actors}, args.experiment,
-                            out=out)
-    with tracker.ended():
-        metrics = {f"pairs_{status}": sum(row["status"] == status for row in rows)
-                   for status in ("ok", "refused", "error")}
-        if done_now:  # a rerun that found every pair complete keeps the rate of the run that did them
-            metrics["pairs_per_s"] = done_now / seconds
-        for row in rows:
-            key = re.sub(r"[^\w./ -]", "_", f"pair/{row['target']}/{row['clip']}")
-            metrics |= {f"{key}/{name}": float(row[name]) for name in ("frames", "seconds", "fit_mm")
-                        if row.get(name) not in (None, "")}
-        tracker.log_metrics(metrics, step=0)
-        tracker.log_artifact(out / "summary.csv")  # replaced by a rerun's (log_table would append to it)
-    return tracker.run_id
 
 
 @releases_locks
@@ -151,7 +82,7 @@ def main(argv: list[str]) -> None:
             raise UserError(f"{flag} must be >= 1, got {value}")
     if args.bone_names != "anny" and not args.rig:
         raise UserError("--bone-names names the rig's joints: add --rig")
-    targets, clips = library(args)
+    targets, clips = find_library(args.targets, args.clips)
     out = Path(args.out).expanduser().resolve()
     from aniformer.checkpoint import model_from_checkpoint, resolve_pretrained  # torch: after the arguments
 
@@ -216,7 +147,8 @@ def main(argv: list[str]) -> None:
     if not args.no_mlflow:
         from pipeline.tracking import tracking_uri
 
-        print(f"MLflow run: {log_run(args, out, ordered, seconds, len(todo))} in {tracking_uri()}")
+        params = {name: getattr(args, name) for name in ("targets", "clips", "checkpoint", "rig", "force", "actors")}
+        print(f"MLflow run: {log_run(out, params, args.experiment, ordered, seconds, len(todo))} in {tracking_uri()}")
     if failed:
         raise UserError(f"{len(failed)} of {len(ordered)} pairs not written ("
                         + ", ".join(f"{row['target']} x {row['clip']}: {row['status']}" for row in failed[:3])

@@ -18,6 +18,9 @@ A variant may change anything but the budget: `train.epochs`, `train.batch_size`
 `data.pairs_per_epoch` stay the base config's. Every variant is evaluated on pairs drawn with the
 same seed, with the vertex shuffling it was trained with (the copy-driver on unshuffled pairs).
 
+`train_variants` trains every variant as jobs/train.py trains (keeping those that finished before),
+`evaluate_variants` scores them all on the same pairs beside the baselines, `variant_notes` says how.
+
 `log_pmd_table` logs such a table ({row: {split: PMD}}, the ablation's or jobs/evaluate.py's) into an
 MLflow run as an MLflow table: the run's Artifacts tab shows it as a table, `mlflow.load_table` reads it
 back, and the experiment's Evaluation view lines up the tables of several runs.
@@ -134,3 +137,106 @@ def log_pmd_table(tracker, table: Mapping[str, Mapping[str, float]], splits: Seq
     if entry not in logged:
         tracker.set_tags({MLFLOW_LOGGED_ARTIFACTS: json.dumps([*logged, entry])})
     return artifact_file
+
+
+def train_variants(specs: dict, bank: Path, out: Path, name: str, experiment: str, parent_run_id: str,
+                    faces) -> dict[str, Path]:
+    """Train each variant that has no finished checkpoint yet; {row name: best.pt}."""
+    from aniformer.checkpoint import load_checkpoint
+    from pipeline.console import Console
+    from pipeline.tracking import start_job_run
+    from pipeline.trainer import train_job
+
+    best = {}
+    for row, spec in specs.items():
+        run_dir = out / "runs" / slug(row)
+        best[row] = run_dir / "best.pt"
+        if best[row].is_file():
+            if load_checkpoint(best[row])["config"] != spec.to_dict():
+                raise UserError(f"{run_dir} holds a run of another config than variant {row!r}; "
+                                "use a new --out (or remove that directory)")
+            print(f"[{row}] kept: {best[row]}", flush=True)
+            continue
+        print(f"[{row}] training ({spec.model_name}, {spec.train.epochs} epochs) ...", flush=True)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        tracker = start_job_run(f"{name}-{slug(row)}", spec.to_dict(), experiment=experiment,
+                                parent_run_id=parent_run_id, out=run_dir)
+        tracker.set_tags({"ablation.variant": row})
+        with tracker.ended():
+            result = train_job(spec, bank, run_dir, f"{name}-{slug(row)}", tracker, faces, Console.for_job())
+        print(f"[{row}] PMD unseen {result.metrics.get('pmd_unseen', float('nan')):.3f} (x1e-4, validation)", flush=True)
+    return best
+
+
+def evaluate_variants(specs: dict, checkpoints: dict, bank_dir: Path, ablation, seed: int, pairs: int):
+    """({row: {split: PMD x1e4}} on the same pairs for every row, the splits used, and on a stream
+    {row: {split: acceleration error, mm/frame²}} on clips of ``DEFAULT_CLIP_FRAMES`` frames, else None)."""
+    from aniformer.checkpoint import model_from_checkpoint
+    from aniformer.evaluate import (
+        DEFAULT_CLIP_FRAMES,
+        DEFAULT_CLIP_PAIRS,
+        Samplers,
+        clip_accelerations,
+        copy_driver_contender,
+        evaluate_table,
+        model_contender,
+        static_target_contender,
+        transfer_contender,
+    )
+    from pipeline.data import pair_source
+
+    first = next(iter(specs.values())).data
+    source = pair_source(first, bank_dir)
+    splits = scored_splits(source, ablation)
+
+    def make_sampler(window: int, shuffle: str):
+        return source.with_settings(window=window, shuffle=shuffle, seed=seed, eval_pairs=pairs)
+
+    samplers = {}  # one per shuffle mode, each caching a sampler per window
+
+    def sampler_for(shuffle: str) -> Samplers:
+        if shuffle not in samplers:
+            samplers[shuffle] = Samplers(make_sampler, shuffle)
+        return samplers[shuffle]
+
+    table, contenders = {}, []
+    for row, spec in specs.items():
+        model, _ = model_from_checkpoint(checkpoints[row])
+        contenders.append(model_contender(row, model))
+        table |= evaluate_table(contenders[-1:], sampler_for(spec.data.shuffle), splits, pairs=pairs, seed=seed)
+    if ablation.copy_driver:
+        baselines = [copy_driver_contender(first.window), static_target_contender(first.window),
+                     transfer_contender(first.window)]
+        contenders += baselines
+        table |= evaluate_table(baselines, sampler_for("none"), splits, pairs=pairs, seed=seed)
+    if first.source != "stream":
+        return table, splits, None
+    clips = make_sampler(DEFAULT_CLIP_FRAMES, "none")
+    per_split = {split: clip_accelerations(contenders, clips, split, pairs=min(pairs, DEFAULT_CLIP_PAIRS))
+                 for split in splits}
+    return table, splits, {c.name: {split: float(per_split[split][c.name].mean()) for split in splits} for c in contenders}
+
+
+def scored_splits(source, ablation) -> list[str]:
+    """``ablation.splits``, else every split of the data with pairs; `UserError` naming one it lacks."""
+    available = source.non_empty_splits
+    splits = list(ablation.splits) or available
+    unknown = [s for s in splits if s not in available]
+    if unknown:
+        raise UserError(f"ablation.splits: unknown or empty split(s) {', '.join(unknown)}; the data has "
+                        f"{', '.join(available)}")
+    return splits
+
+
+def variant_notes(specs: dict, ablation, pairs: int, seed: int) -> list[str]:
+    """The lines under the table: how every variant was trained and scored, then each one's overrides."""
+    from aniformer.memory import parameter_count
+
+    first = next(iter(specs.values()))
+    notes = [f"Every variant: {first.train.epochs} epochs x {first.data.pairs_per_epoch} pairs, batch "
+             f"{first.train.batch_size}; scored on {pairs} pairs per split (seed {seed}) with the vertex "
+             "shuffling it was trained with (the baselines: unshuffled). Variants (overrides of the base config"
+             + (f", after `{' '.join(ablation.common)}` for every row" if ablation.common else "") + "):", ""]
+    return notes + [f"- {row}: `{' '.join(ablation.variants[row]) or '(base config)'}` — "
+                    f"{spec.model_name}, {parameter_count(spec.model):,} parameters, "
+                    f"shuffle `{spec.data.shuffle}`" for row, spec in specs.items()]
