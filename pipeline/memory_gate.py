@@ -42,14 +42,14 @@ def plan_batch(config: ModelConfig, *, vertices, batch: int, grad_accumulation: 
     requested = predict(batch)
     if limit_gb is None or requested <= limit_gb:
         return BatchPlan("ok", batch, grad_accumulation, requested, requested, limit_gb or math.inf)
-    b = batch
+    b, predicted = batch, requested
     while b > 1:
         b = max(1, b // 2)
         predicted = predict(b)
         if predicted <= limit_gb:
             return BatchPlan("adjusted_memory", b, grad_accumulation * math.ceil(batch / b), requested,
                              predicted, limit_gb)
-    return BatchPlan("skipped_memory", 1, grad_accumulation * batch, requested, predict(1), limit_gb)
+    return BatchPlan("skipped_memory", 1, grad_accumulation * batch, requested, predicted, limit_gb)  # of batch 1
 
 
 def gate(spec, vertices: int, faces: int | None, sweep: SweepConfig):
