@@ -120,9 +120,9 @@ def lock_output(out: str | os.PathLike, flag: str = "--out") -> OutputLock:
     """Lock output directory `out` (created if missing) for this process; the same lock again if this
     process holds it already. Stale temporary files of `atomic_path` in `out` are removed (none
     can be in use: the lock is ours)."""
+    if (held := lock_on(out)) is not None:
+        return held
     out = Path(os.path.abspath(os.path.expanduser(out)))
-    if out in _HELD:
-        return _HELD[out]
     if out.exists() and not out.is_dir():
         raise UserError(f"{flag} {out} exists and is not a directory")
     created = not out.exists()
@@ -145,6 +145,11 @@ def lock_output(out: str | os.PathLike, flag: str = "--out") -> OutputLock:
         if ATOMIC_TMP.match(path.name) and path.is_file() and not path.is_symlink():
             path.unlink(missing_ok=True)
     return lock
+
+
+def lock_on(directory: str | os.PathLike) -> OutputLock | None:
+    """The lock this process holds on exactly `directory`, if any."""
+    return _HELD.get(Path(os.path.abspath(os.path.expanduser(directory))))
 
 
 def held_lock(path: str | os.PathLike) -> OutputLock | None:

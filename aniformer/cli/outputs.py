@@ -21,7 +21,7 @@ import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
-from aniformer.cli.locks import LOCK_NAME, OutputLock, held_lock, lock_output
+from aniformer.cli.locks import LOCK_NAME, OutputLock, held_lock, lock_on, lock_output
 from aniformer.errors import UserError
 from aniformer.io.files import plain_mode
 
@@ -57,8 +57,7 @@ def claim_output(out: str | os.PathLike, overwrite: bool,
     """What a job does with its `--out` before any work: refuse one that is, holds or lies inside an
     input, lock it (one job per output), then refuse a non-empty one unless `overwrite`."""
     protect_inputs(out, dict(inputs))
-    path = Path(os.path.abspath(os.path.expanduser(out)))
-    fresh = held_lock(path) is None or held_lock(path).directory != path
+    fresh = lock_on(out) is None
     lock = lock_output(out)
     try:
         check_output_dir(lock.directory, overwrite)
@@ -148,8 +147,7 @@ def staged_output_dir(out: Path, overwrite: bool) -> Iterator[Path]:
     try:
         yield tmp
         check_output_dir(out, overwrite)  # still true after a long job?
-        lock = held_lock(out)
-        if lock is not None and lock.directory == Path(os.path.abspath(out)):
+        if (lock := lock_on(out)) is not None:
             lock.add(tmp)  # the new `out` is locked as it appears
         if out.exists() and swap_dirs(tmp, out):
             shutil.rmtree(tmp, ignore_errors=True)  # now the old `out`
