@@ -57,8 +57,9 @@ def main(argv: list[str]) -> None:
         RunSpec.from_config(apply_params(base, {"window": window}))
     out, name, bank = RunJobParser.locations(args)
 
+    from aniformer.synth.bodies import TOPOLOGIES
     from pipeline.cluster import connect
-    from pipeline.data import prepare_bank
+    from pipeline.data import pair_source, prepare_bank
     from pipeline.sweep_table import SweepReporter, best_row, record_results, summarize, write_summary
     from pipeline.tracking import start_job_run
     from pipeline.tune import build_tuner, end_interrupted_runs, experiment_exists, unfinished_trials
@@ -66,7 +67,9 @@ def main(argv: list[str]) -> None:
     connect()
     exit_on_sigterm()  # after ray.init, which installs its own handler
     manifest, faces = prepare_bank(spec.data, bank, generate=args.bank is None)
-    vertices = int(manifest.num_vertices) if manifest else int(faces.max()) + 1  # a stream: its topology's
+    largest = max(spec.data.train_topologies, key=TOPOLOGIES.get)  # the memory gate plans for its batches
+    mesh_faces = faces if largest == spec.data.topology else pair_source(spec.data, bank, largest).faces
+    vertices, face_count = int(manifest.num_vertices) if manifest else int(mesh_faces.max()) + 1, len(mesh_faces)
     restore = experiment_exists(out, name)
     parent = start_job_run(name, {**spec.to_dict(), "sweep": sweep.to_dict()}, experiment=args.experiment, out=out)
     parent.set_tags({"kind": "sweep", "sweep.search": sweep.search,
@@ -75,9 +78,10 @@ def main(argv: list[str]) -> None:
     try:
         print(("restoring" if restore else "starting") + f" sweep {name} in {out / 'tune' / name}", flush=True)
         tuner = build_tuner(base, sweep, sweep_name=name, out=out, bank=bank, experiment=args.experiment,
-                            parent_run_id=parent.run_id, faces=faces, vertices=vertices, restore=restore,
+                            parent_run_id=parent.run_id, faces=faces, vertices=vertices, face_count=face_count,
+                            restore=restore,
                             reporter=SweepReporter(base, sweep, sweep_name=name, epochs=spec.train.epochs,
-                                                   vertices=vertices, faces=len(faces)))
+                                                   vertices=vertices, faces=face_count))
         results = tuner.fit()
         unfinished = unfinished_trials(out / "tune" / name, sweep.num_samples)
         rows = summarize(results, sweep, spec.train.epochs)

@@ -82,7 +82,7 @@ def _stream(options: EvaluateOptions, cfg: DataConfig) -> PairSource:
     topology = options.topology or cfg.topology
     if topology not in TOPOLOGIES:
         raise UserError(f"--topology must be one of {', '.join(TOPOLOGIES)}; got {topology!r}")
-    return pair_source(dataclasses.replace(cfg, topology=topology), None)
+    return pair_source(cfg, None, topology)
 
 
 def _stream_data(options: EvaluateOptions, cfg: DataConfig, pairs: int, seed: int) -> EvalData:
@@ -128,7 +128,8 @@ def _bank_data(options: EvaluateOptions, ckpt_path: Path, cfg: DataConfig, pairs
         raise UserError("--topology applies to checkpoints trained on a stream (data.source: stream)")
     bank_dir = _bank_dir(options, ckpt_path)
     bank = load_bank(bank_dir)
-    source = pair_source(dataclasses.replace(cfg, source="bank"), bank)  # a stream checkpoint too, given --bank
+    # a stream checkpoint too, given --bank (the bank's one topology)
+    source = pair_source(dataclasses.replace(cfg, source="bank", extra_topologies=()), bank)
     named = [s.strip() for s in (options.splits or "").split(",")]
     empty = [s for s in named if s in source.splits and s not in source.non_empty_splits]
     if empty:

@@ -6,16 +6,19 @@ named steps: `restore`, then per epoch `train_epoch`, `validate_and_checkpoint` 
 worker resumes from the checkpoint Ray Train hands it via `get_checkpoint()` (`pipeline.checkpoints`).
 
 One pass over the "train" dataset covers every remaining epoch (pairs of epoch e are seeded by (seed, e));
-each worker takes a fixed number of batches per epoch so that all DDP ranks step in lockstep.
+each worker takes a fixed number of batches per epoch so that all DDP ranks step in lockstep. With
+`data.extra_topologies` each topology has its own datasets and batches take them in turn, one topology per batch.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import resource
 import tempfile
 import time
 from collections import defaultdict
+from collections.abc import Iterator
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +52,16 @@ class TrainLoop:
     tracker: Tracker | None = None
     console: Console | None = None  # None leaves Ray's output as it is and prints nothing
     placement_group_file: str | None = None  # a sweep trial's: where rank 0 records its placement group
+
+
+def dataset_name(split: str, topology: str, spec: RunSpec) -> str:
+    """Ray Train's name for the dataset of ``split`` on ``topology``: the split itself on the config's topology."""
+    return split if topology == spec.data.topology else f"{split}_{topology}"
+
+
+def topology_steps(spec: RunSpec, world: int) -> int:
+    """Each topology's batches per epoch on every worker (the epoch is ``len(train_topologies)`` times that)."""
+    return max(1, spec.data.pairs_per_epoch // (len(spec.data.train_topologies) * spec.train.batch_size * world))
 
 
 def peak_memory_gb(device: torch.device) -> float:
@@ -177,13 +190,19 @@ def validate_and_checkpoint(run: Training, spec: RunSpec, metrics: dict, directo
                             faces: np.ndarray) -> ray.train.Checkpoint:
     """Rank 0: PMD on the evaluation splits into ``metrics``, the checkpoint written to ``directory``, the
     metrics (and every ``render_every`` epochs a filmstrip) logged to the run."""
-    cfg, example = spec.train, None
+    cfg, example, topologies = spec.train, None, spec.data.train_topologies
     for split in EVAL_SPLITS:
-        shard = ray.train.get_dataset_shard(split).iter_torch_batches(batch_size=16, device=run.device)
-        with attention_kernels(cfg.attention_kernels):  # eager whatever `compile` says: other shapes
-            metrics[f"pmd_{split}"], first = evaluate_split(unwrap(run.model), shard, run.frames, run.device,
-                                                            run.autocast)
-        example = example if split == "seen" and example else first
+        scores = {}
+        for topology in topologies:
+            shard = ray.train.get_dataset_shard(dataset_name(split, topology, spec)).iter_torch_batches(
+                batch_size=16, device=run.device)
+            with attention_kernels(cfg.attention_kernels):  # eager whatever `compile` says: other shapes
+                scores[topology], first = evaluate_split(unwrap(run.model), shard, run.frames, run.device, run.autocast)
+            if topology == spec.data.topology:
+                example = example if split == "seen" and example else first
+        metrics[f"pmd_{split}"] = float(np.mean(list(scores.values())))  # what the best checkpoint is chosen by
+        if len(topologies) > 1:
+            metrics |= {f"pmd_{split}_{topology}": score for topology, score in scores.items()}
     save_checkpoint(directory / FILENAME, config=spec.to_dict(), model=run.model, optimizer=run.optimizer,
                     scheduler=run.scheduler, epoch=run.epoch, step=run.step)
     if tracker:
@@ -192,6 +211,11 @@ def validate_and_checkpoint(run: Training, spec: RunSpec, metrics: dict, directo
             tracker.log_artifact(render_example(example, run.frames, faces, directory / f"epoch_{run.epoch:04d}.png"),
                                  "filmstrips")
     return ray.train.Checkpoint.from_directory(directory)
+
+
+def interleave(iterables: list) -> Iterator[dict]:
+    """Batches of each iterable in turn (one topology per batch), until the first runs out."""
+    return itertools.chain.from_iterable(zip(*iterables))
 
 
 def train_func(loop_config: dict) -> None:
@@ -207,9 +231,10 @@ def train_func(loop_config: dict) -> None:
     run = restore(spec)
     if run.epoch < first_epoch:
         raise RuntimeError(f"restored epoch {run.epoch}, but the train dataset starts at epoch {first_epoch}")
-    steps = max(1, spec.data.pairs_per_epoch // (cfg.batch_size * world))
-    batches = iter(ray.train.get_dataset_shard("train").iter_torch_batches(
-        batch_size=cfg.batch_size, drop_last=True, device=run.device, prefetch_batches=2))
+    topologies = spec.data.train_topologies
+    steps = len(topologies) * topology_steps(spec, world)
+    batches = interleave([ray.train.get_dataset_shard(dataset_name("train", t, spec)).iter_torch_batches(
+        batch_size=cfg.batch_size, drop_last=True, device=run.device, prefetch_batches=2) for t in topologies])
     for _ in range((run.epoch - first_epoch) * steps):  # a worker restart: skip the epochs since the dataset's start
         next(batches)
     if tracker and rank == 0:

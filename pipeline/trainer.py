@@ -29,7 +29,7 @@ from pipeline.data import pair_dataset, pair_source, quiet_ray_data
 from pipeline.ddp import LoopbackTorchConfig
 from pipeline.run_spec import EVAL_SPLITS, RunSpec
 from pipeline.tracking import Tracker
-from pipeline.train import LOOP_KEY, TrainLoop, train_func
+from pipeline.train import LOOP_KEY, TrainLoop, dataset_name, topology_steps, train_func
 
 
 def ray_run_name(name: str) -> str:
@@ -58,13 +58,19 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
     (a training job's): rank 0's bar and epoch lines, Ray Train's log level; None leaves Ray's output as is."""
     cfg = spec.train
     quiet_ray_data()  # before the trainer: it captures the DataContext for its workers
-    source = pair_source(spec.data, bank_dir)  # one bank load for every dataset
     run_name = ray_run_name(name)
     resumed_epoch = resume_epoch(storage / run_name)  # where the job's own restart (a rerun) picks up
     first_epoch = min(resumed_epoch, cfg.epochs - 1)  # a finished run's re-run trains nothing
-    datasets = {"train": pair_dataset(source, "train", epochs=cfg.epochs - first_epoch, first_epoch=first_epoch)}
-    for split in EVAL_SPLITS:
-        datasets[split] = pair_dataset(source, split)
+    topologies = spec.data.train_topologies
+    share = topology_steps(spec, cfg.workers) * cfg.batch_size * cfg.workers  # pairs per topology and epoch
+    datasets = {}
+    for i, topology in enumerate(topologies):
+        source = pair_source(spec.data, bank_dir, topology)  # one bank load for every dataset
+        datasets[dataset_name("train", topology, spec)] = pair_dataset(
+            source, "train", epochs=cfg.epochs - first_epoch, first_epoch=first_epoch, pairs=share,
+            first_index=i * share)  # each topology's own draws
+        for split in EVAL_SPLITS:  # the same validation pairs at every resolution
+            datasets[dataset_name(split, topology, spec)] = pair_dataset(source, split)
     # Blocks in the order of their pair ids: the same config and seed give the same batches, so the
     # same model (Ray Data otherwise yields blocks as tasks finish, and runs diverged from epoch 1).
     # ray.train.DataConfig.default_ingest_options() with preserve_order, less its deprecated exclude_resources
@@ -82,7 +88,9 @@ def build_trainer(spec: RunSpec, bank_dir: Path, storage: Path, name: str, track
                                      placement_strategy=cfg.placement_strategy),
         datasets=datasets,
         # One worker reads the whole stream: skip the split coordinator (half a core on a 2-core machine).
-        dataset_config=ray.train.DataConfig(datasets_to_split=["train"] if cfg.workers > 1 else [], execution_options=ingest),
+        dataset_config=ray.train.DataConfig(
+            datasets_to_split=[dataset_name("train", t, spec) for t in topologies] if cfg.workers > 1 else [],
+            execution_options=ingest),
         run_config=RunConfig(
             name=run_name,
             storage_path=str(storage),

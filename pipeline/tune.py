@@ -117,15 +117,17 @@ def release_placement_group(path: Path) -> bool:
 
 
 def run_trial(params: dict, *, base: dict, sweep: dict, sweep_name: str, bank: str, storage: str,
-              experiment: str, parent_run_id: str, faces: np.ndarray, vertices: int, mlflow_uri: str) -> None:
-    """The function trainable: gate, open the trial's MLflow child run, train (or report the skip)."""
+              experiment: str, parent_run_id: str, faces: np.ndarray, vertices: int, face_count: int,
+              mlflow_uri: str) -> None:
+    """The function trainable: gate (for a batch of ``vertices`` and ``face_count``: the largest topology trained
+    on), open the trial's MLflow child run, train (or report the skip)."""
     # The driver's store, not one resolved in this actor (another env and cwd: Tune's trial dir).
     os.environ["MLFLOW_TRACKING_URI"] = mlflow_uri
 
 
     sweep_cfg = from_dict(SweepConfig, sweep, "sweep")
     trial_id = tune.get_context().get_trial_id()
-    requested, plan = plan_trial(base, params, vertices, len(faces), sweep_cfg)
+    requested, plan = plan_trial(base, params, vertices, face_count, sweep_cfg)
     spec = dataclasses.replace(requested, train=dataclasses.replace(requested.train, batch_size=plan.batch_size,
                                                                     grad_accumulation=plan.grad_accumulation))
     name = f"{sweep_name}-{trial_id}"
@@ -245,7 +247,8 @@ logging.getLogger("ray.tune.execution.tune_controller").addFilter(_NoTrialTraceb
 
 
 def build_tuner(base: dict, sweep: SweepConfig, *, sweep_name: str, out: Path, bank: Path, experiment: str,
-                parent_run_id: str, faces: np.ndarray, vertices: int, restore: bool, reporter: CLIReporter):
+                parent_run_id: str, faces: np.ndarray, vertices: int, face_count: int, restore: bool,
+                reporter: CLIReporter):
     """A new Tuner for the sweep, or the interrupted one restored from `out/tune/<sweep_name>`; `reporter`
     draws the console's trial table (`pipeline.sweep_table.SweepReporter`)."""
 
@@ -253,7 +256,8 @@ def build_tuner(base: dict, sweep: SweepConfig, *, sweep_name: str, out: Path, b
     trainable = tune.with_resources(
         tune.with_parameters(run_trial, base=base, sweep=sweep.to_dict(), sweep_name=sweep_name, bank=str(bank),
                              storage=str(out / "trials"), experiment=experiment, parent_run_id=parent_run_id,
-                             faces=np.asarray(faces), vertices=int(vertices), mlflow_uri=tracking_uri()),
+                             faces=np.asarray(faces), vertices=int(vertices), face_count=int(face_count),
+                             mlflow_uri=tracking_uri()),
         {"CPU": sweep.trial_cpus})
     path = out / "tune" / sweep_name
     # The sweep's own trial table (`reporter`). Ray 2.60's default console ("new output",

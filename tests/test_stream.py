@@ -124,6 +124,29 @@ def test_stream_config_rejects_shuffling_and_unknown_splits(stream):
         stream.batch("nope", 0, [0])
 
 
+def test_extra_topologies_need_a_stream_and_distinct_anny_topologies():
+    from aniformer.errors import UserError
+    from pipeline.data import DataConfig, pair_source
+
+    cfg = DataConfig(source="stream", shuffle="none", topology=TOPOLOGY, extra_topologies=["notoes_collapse5pc"])
+    assert cfg.train_topologies == (TOPOLOGY, "notoes_collapse5pc")
+    assert pair_source(cfg, None, "notoes_collapse5pc").num_vertices == 615
+    for extra, message in ((["smpl"], "extra_topologies must be one of"), ([TOPOLOGY], "repeats a topology")):
+        with pytest.raises(ValueError, match=message):
+            DataConfig(source="stream", shuffle="none", topology=TOPOLOGY, extra_topologies=extra)
+    with pytest.raises(ValueError, match="needs source: stream"):
+        DataConfig(topology=TOPOLOGY, extra_topologies=["notoes_collapse5pc"])
+    with pytest.raises(UserError, match="holds one topology"):
+        pair_source(DataConfig(topology=TOPOLOGY), "no-bank", "notoes_collapse5pc")
+
+
+def test_training_batches_take_the_topologies_in_turn():
+    from pipeline.train import interleave
+
+    assert list(interleave([iter("aaa"), iter("bbbb")])) == ["a", "b", "a", "b", "a", "b"]
+    assert list(interleave([iter("abc")])) == ["a", "b", "c"]
+
+
 def test_pair_source_of_a_stream_has_every_split_and_keeps_its_settings():
     from pipeline.data import DataConfig, PairSource, pair_source
 
@@ -147,6 +170,13 @@ def test_ray_dataset_of_a_stream_holds_the_numpy_pairs(ray_cluster, stream):
     expected = stream.batch("train", 1, [4])
     np.testing.assert_allclose(rows[14]["driving"], expected["driving"][0], atol=1e-6)
     np.testing.assert_allclose(rows[14]["ground_truth"], expected["ground_truth"][0], atol=1e-6)
+    # another topology's share of each epoch: its own pairs (ids from first_index), its own vertices
+    other = StreamPairs("notoes_collapse5pc", window=stream.window, seed=stream.seed)
+    rows = sorted(pair_dataset(other, "train", epochs=2, pairs=3, first_index=10).iter_rows(),
+                  key=lambda r: (r["epoch"], r["index"]))
+    assert [(r["epoch"], r["index"]) for r in rows] == [(e, i) for e in range(2) for i in range(10, 13)]
+    assert rows[0]["driving"].shape == (3, 615, 3)
+    np.testing.assert_allclose(rows[4]["driving"], other.batch("train", 1, [11])["driving"][0], atol=1e-6)
 
 
 def test_deformation_transfer_keeps_the_target_build_in_the_driver_pose(stream):
@@ -187,9 +217,18 @@ def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monk
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     out = tmp_path / "run"
-    run(job_main("train"), ["--config", str(repo_root / "configs/tiny.yaml"), "--out", str(out), *STREAM_TINY])
+    run(job_main("train"), ["--config", str(repo_root / "configs/tiny.yaml"), "--out", str(out), *STREAM_TINY,
+                            "data.extra_topologies=[notoes_collapse5pc]"])
     assert (out / "best.pt").is_file() and not (out / "bank").exists()
     assert "trained run: epoch 1" in capsys.readouterr().out
+    # trained on both topologies, validated on each; the best checkpoint is chosen by their mean
+    import mlflow
+
+    (logged,) = mlflow.search_runs(search_all_experiments=True, output_format="list")
+    metrics = logged.data.metrics
+    for split in ("seen", "unseen"):
+        each = [metrics[f"pmd_{split}_{t}"] for t in (TOPOLOGY, "notoes_collapse5pc")]
+        assert metrics[f"pmd_{split}"] == pytest.approx(np.mean(each)) and min(each) > 0
     run(job_main("evaluate"), ["--checkpoint", str(out / "best.pt"), "--out", str(tmp_path / "eval"), "--pairs", "2",
                                "--splits", "seen,rotated,build_mismatch", "--clip-frames", "6", "--clip-pairs", "1",
                                "--no-mlflow", "--no-progress"])
@@ -216,6 +255,10 @@ def test_train_and_evaluate_on_the_stream_end_to_end(ray_cluster, tmp_path, monk
     # the trivial baselines are far from the truth on mismatched builds; the prior is not
     mismatch = {name: float(r["build_mismatch"]) for name, r in rows.items()}
     assert mismatch["deformation transfer"] < 0.5 * min(mismatch["copy-driver"], mismatch["static target"])
+    run(job_main("evaluate"), ["--checkpoint", str(out / "best.pt"), "--out", str(tmp_path / "e615"), "--pairs", "1",
+                               "--splits", "seen", "--clip-frames", "0", "--topology", "notoes_collapse5pc",
+                               "--no-mlflow", "--no-progress"])  # scored on one of the topologies it trained on
+    assert "stream, topology notoes_collapse5pc" in (tmp_path / "e615" / "results.md").read_text()
     with pytest.raises(SystemExit):  # a bank split on a stream checkpoint: one line, exit 2
         run(job_main("evaluate"), ["--checkpoint", str(out / "best.pt"), "--out", str(tmp_path / "e2"),
                                    "--splits", "unseen_drivers", "--no-mlflow", "--no-progress"])

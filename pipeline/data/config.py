@@ -88,7 +88,11 @@ class DataConfig(Section):
 
     ``source``: ``bank`` (a mesh bank on disk, described by the fields below) or ``stream`` (pairs
     made on the fly by ``aniformer.synth.stream``: fresh bodies and smooth motion over the whole
-    pose space; only ``topology``, ``seed``, ``window``, ``center`` and the pair counts apply).
+    pose space; only ``topology``, ``extra_topologies``, ``seed``, ``window``, ``center`` and the pair counts apply).
+
+    ``extra_topologies`` (stream only): further Anny topologies trained on in turn with ``topology``, one
+    topology per batch, so that the learned correction fits the transfer at each resolution it runs on;
+    the epoch's pairs are shared equally and validation scores every topology.
 
     Identities: ``driving_identities`` perform the motion instances (the last
     ``unseen_driving_identities`` of them only for the ``unseen_drivers`` split); target identities
@@ -100,6 +104,7 @@ class DataConfig(Section):
 
     source: str = "bank"
     topology: str = "notoes_collapse10pc"
+    extra_topologies: tuple[str, ...] = ()
     seed: int = 0
     frames: int = 30
     driving_identities: int = 10
@@ -122,6 +127,12 @@ class DataConfig(Section):
         super().__post_init__()
         if self.topology not in TOPOLOGIES:
             raise ValueError(f"topology must be one of {', '.join(TOPOLOGIES)}; got {self.topology!r}")
+        for extra in self.extra_topologies:
+            check_choice("extra_topologies", extra, TOPOLOGIES)
+        if len(set(self.train_topologies)) != len(self.train_topologies):
+            raise ValueError("extra_topologies repeats a topology (or topology itself)")
+        if self.extra_topologies and self.source != "stream":
+            raise ValueError("extra_topologies needs source: stream (a bank holds one topology)")
         check_int("seed", self.seed, 0, 2**32 - 1)
         check_int("frames", self.frames, 2, 10_000)
         check_int("window", self.window, 1, self.frames)
@@ -182,6 +193,11 @@ class DataConfig(Section):
         else:
             raise ValueError(f"heldout_actions must be a list of action names or a count; got {held!r}")
         return actions, heldout
+
+    @property
+    def train_topologies(self) -> tuple[str, ...]:
+        """The topologies trained on, one per batch in turn: ``topology`` first."""
+        return (self.topology, *self.extra_topologies)
 
     def pair_settings(self) -> dict:
         """The fields a pair sampler takes (``PairSampler(bank, **cfg.pair_settings())``)."""

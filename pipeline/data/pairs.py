@@ -55,12 +55,14 @@ class PairSource(Protocol):
         """The same data with other pair settings (``PAIR_FIELDS``), as an evaluation draws each model's pairs."""
 
 
-def pair_source(cfg: DataConfig, bank: Bank | str | os.PathLike | None) -> PairSource:
-    """The pairs of ``cfg``: made on the fly (``source: stream``; ``bank`` unused) or drawn from ``bank``, a
-    directory (loaded and checked against ``cfg``) or a `Bank` in memory (taken as it is: an evaluation may
-    score a checkpoint on another bank than its own)."""
+def pair_source(cfg: DataConfig, bank: Bank | str | os.PathLike | None, topology: str | None = None) -> PairSource:
+    """The pairs of ``cfg``: made on the fly (``source: stream``; ``bank`` unused; on ``topology``, default
+    ``cfg.topology``) or drawn from ``bank``, a directory (loaded and checked against ``cfg``) or a `Bank` in
+    memory (taken as it is: an evaluation may score a checkpoint on another bank than its own)."""
     if cfg.source == "stream":
-        return StreamPairs(cfg.topology, **cfg.pair_settings())
+        return StreamPairs(topology or cfg.topology, **cfg.pair_settings())
+    if topology not in (None, cfg.topology):
+        raise UserError(f"a mesh bank holds one topology ({cfg.topology}), not {topology}")
     if isinstance(bank, Bank):
         return PairSampler(bank, **cfg.pair_settings())
     return PairSampler.from_dir(bank, cfg)

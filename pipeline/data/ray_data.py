@@ -167,8 +167,8 @@ def prepare_bank(cfg: DataConfig, bank_dir: str | os.PathLike, *, generate: bool
 _SAMPLER_CACHE: dict = {}  # the pair sampler of this worker process, by object ref
 
 
-def _assemble(batch: dict, sampler_ref: list, split: str, n: int, first_epoch: int) -> dict:
-    """Ray Data task: ids ``epoch_offset * n + index`` -> assembled pairs."""
+def _assemble(batch: dict, sampler_ref: list, split: str, n: int, first_epoch: int, first_index: int) -> dict:
+    """Ray Data task: ids ``epoch_offset * n + index`` -> assembled pairs ``first_index + index``."""
     key = sampler_ref[0].hex()
     sampler = _SAMPLER_CACHE.get(key)
     if sampler is None:
@@ -176,7 +176,7 @@ def _assemble(batch: dict, sampler_ref: list, split: str, n: int, first_epoch: i
         sampler = _SAMPLER_CACHE[key] = ray.get(sampler_ref[0])
     ids = np.asarray(batch["id"], np.int64)
     epochs = first_epoch + ids // n
-    parts = [sampler.batch(split, int(e), (ids % n)[epochs == e], n=n) for e in np.unique(epochs)]
+    parts = [sampler.batch(split, int(e), first_index + (ids % n)[epochs == e], n=n) for e in np.unique(epochs)]
     if len(parts) == 1:
         return parts[0]
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -190,13 +190,15 @@ def pair_dataset(
     epochs: int = 1,
     first_epoch: int = 0,
     pairs: int | None = None,
+    first_index: int = 0,
     batch_size: int | None = None,
     num_cpus: float = 0.5,
     concurrency: int | None = None,
     rows_per_block: int | None = None,
 ):
     """A Ray Dataset of the pairs of ``epochs`` consecutive epochs of ``split`` (``pairs`` per
-    epoch; default ``pairs_per_epoch`` for train, ``eval_pairs`` otherwise), epoch by epoch.
+    epoch; default ``pairs_per_epoch`` for train, ``eval_pairs`` otherwise), epoch by epoch: pairs
+    ``first_index`` to ``first_index + pairs - 1`` of each (a stream's; another topology's share of an epoch).
 
     Columns: driving (T, V, 3) float32, target (V, 3), ground_truth (T, V, 3), target_faces (F, 3)
     int64, and int64 ids index, epoch, motion, start, driving_identity, target_identity. Pair ``i``
@@ -217,8 +219,9 @@ def pair_dataset(
     sampler = PairSampler.from_dir(bank, cfg) if isinstance(bank, (str, os.PathLike)) else bank
     sampler.split(split)  # unknown or empty split: fail here, in the caller, with one line
     n = sampler.default_pairs(split) if pairs is None else int(pairs)
-    if n < 1 or epochs < 1 or first_epoch < 0:
-        raise UserError(f"pairs ({n}) and epochs ({epochs}) must be >= 1, first_epoch ({first_epoch}) >= 0")
+    if n < 1 or epochs < 1 or first_epoch < 0 or first_index < 0:
+        raise UserError(f"pairs ({n}) and epochs ({epochs}) must be >= 1, first_epoch ({first_epoch}) and "
+                        f"first_index ({first_index}) >= 0")
     V, F = sampler.num_vertices, len(sampler.faces)
     pair_bytes = (2 * sampler.window + 1) * V * 12 + F * 24
     rows_per_block = rows_per_block or getattr(sampler, "block_pairs", None) or max(8, min(1024, int(64e6 // pair_bytes)))
@@ -231,7 +234,7 @@ def pair_dataset(
     ds = ray.data.from_arrow([pa.table({"id": chunk}) for chunk in chunks])
     return ds.map_batches(
         _assemble,
-        fn_kwargs={"sampler_ref": [ref], "split": split, "n": n, "first_epoch": first_epoch},
+        fn_kwargs={"sampler_ref": [ref], "split": split, "n": n, "first_epoch": first_epoch, "first_index": first_index},
         batch_size=batch_size,
         num_cpus=num_cpus,
         compute=TaskPoolStrategy(size=concurrency) if concurrency else None,
