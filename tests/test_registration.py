@@ -207,21 +207,25 @@ def test_registration_round_trip_is_exact_on_the_template_itself():
     assert torch.isfinite(torch.from_numpy(back)).all()
 
 
-@pytest.mark.parametrize("spread", [0.05, 0.6])  # radians between the blended rotations: a triangle's, a joint's
-def test_weighted_rotation_mean_is_the_chordal_mean(spread):
+# radians between the blended rotations (a triangle's, a joint's), and the largest entry error allowed: power
+# iteration slows where two eigenvalues are close, so a joint's spread converges to ~1e-3 in the worst of 20k draws
+@pytest.mark.parametrize(("spread", "tolerance"), [(0.05, 1e-5), (0.6, 2e-3)])
+def test_weighted_rotation_mean_is_the_chordal_mean(spread, tolerance):
     """The power-iterated quaternion mean equals the rotation nearest to sum_k w_k R_k (an SVD solve)."""
     import roma
 
     from aniformer.correspondence import weighted_rotation_mean
 
-    generator = torch.Generator().manual_seed(0)
-    centre = roma.random_rotvec(500, generator=generator)
-    rotvecs = centre[:, None] + spread * torch.randn(500, 3, 3, generator=generator, dtype=centre.dtype)
-    weights = torch.distributions.Dirichlet(torch.ones(3)).sample((500,))
-    quaternions = roma.rotvec_to_unitquat(rotvecs) * torch.where(torch.rand(500, 3, 1) < 0.5, -1.0, 1.0)  # q ~ -q
+    generator = torch.Generator().manual_seed(0)  # every draw from it: the test must not depend on the tests before it
+    centre = roma.random_rotvec(2000, generator=generator)
+    rotvecs = centre[:, None] + spread * torch.randn(2000, 3, 3, generator=generator, dtype=centre.dtype)
+    exponentials = -torch.rand(2000, 3, generator=generator).log()
+    weights = exponentials / exponentials.sum(1, keepdim=True)  # Dirichlet(1, 1, 1): a triangle's barycentric weights
+    signs = torch.where(torch.rand(2000, 3, 1, generator=generator) < 0.5, -1.0, 1.0)  # q ~ -q
+    quaternions = roma.rotvec_to_unitquat(rotvecs) * signs
     exact = roma.special_procrustes((weights[..., None, None] * roma.rotvec_to_rotmat(rotvecs)).sum(1))
     mean = roma.unitquat_to_rotmat(weighted_rotation_mean(quaternions, weights))
-    assert (mean - exact).abs().max() < 1e-4
+    assert (mean - exact).abs().max() < tolerance
 
 
 def test_extremities_of_posed_characters_are_labelled_where_they_are(stream):
