@@ -207,9 +207,9 @@ def test_registration_round_trip_is_exact_on_the_template_itself():
     assert torch.isfinite(torch.from_numpy(back)).all()
 
 
-# radians between the blended rotations (a triangle's, a joint's), and the largest entry error allowed: power
-# iteration slows where two eigenvalues are close, so a joint's spread converges to ~1e-3 in the worst of 20k draws
-@pytest.mark.parametrize(("spread", "tolerance"), [(0.05, 1e-5), (0.6, 2e-3)])
+# radians between the blended rotations (a triangle's, a joint's), and the largest entry error allowed on this
+# seeded draw (power iteration slows where two eigenvalues are close: ~1e-3 in the worst of 20k random joint draws)
+@pytest.mark.parametrize(("spread", "tolerance"), [(0.05, 1e-5), (0.6, 1e-4)])
 def test_weighted_rotation_mean_is_the_chordal_mean(spread, tolerance):
     """The power-iterated quaternion mean equals the rotation nearest to sum_k w_k R_k (an SVD solve)."""
     import roma
