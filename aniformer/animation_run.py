@@ -169,7 +169,7 @@ def model_inputs(options: AnimateOptions, state: dict, config, driving, driving_
             registrations["target"] = Correspondence(target, target_faces, topology)
         _report_fit("target", registrations["target"], template, seconds["register target"])
     model_driving = registrations["driver"].to_template(driving) if "driver" in registrations else driving
-    model_target = registrations["target"].template if "target" in registrations else target
+    model_target = registrations["target"].unposed_template if "target" in registrations else target
     return faces, model_driving, model_target, registrations, driver_trust
 
 

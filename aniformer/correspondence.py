@@ -14,7 +14,11 @@ the mesh and keeps the two embeddings that carry motion across:
    so ``from_template`` carries a posed template back: the vertex rides its point, and its offset
    turns with the template's rotation there (the one-ring rotations of the face's corners,
    blended). Solving for the mesh's own edges turned by those rotations (as-rigid-as-possible)
-   was measured worse: 1.3-7.1 against 1.0-1.2 PMD of carry-back error (docs/results.md).
+   was measured worse: 1.3-7.1 against 1.0-1.2 PMD of carry-back error (docs/results.md);
+4. *unposed template*: the template on the mesh moved to Anny's rest pose by the inverse of the fit's
+   skinning, vertex by vertex: the model's target. A posed target's own joint deformation (a bent
+   knee's folded skin) is otherwise carried into every driving pose (docs/results.md: the model's
+   error on posed validation characters 79.7 -> 71.0 PMD).
 """
 
 from __future__ import annotations
@@ -33,8 +37,9 @@ class Correspondence:
 
     ``template_faces`` is the Anny topology's; ``fitted`` Anny's fitted body (``BodyFit``: given, or
     fitted here with ``fit_options``); ``template`` its vertices snapped onto the mesh's surface;
-    ``rms`` the root-mean-square distance of the fitted template's vertices to the mesh's surface and
-    of the mesh's vertices to the template's (mesh units). ``aniformer.trust`` says whether to trust it."""
+    ``unposed_template`` those in Anny's rest pose; ``rms`` the root-mean-square distance of the fitted
+    template's vertices to the mesh's surface and of the mesh's vertices to the template's (mesh units).
+    ``aniformer.trust`` says whether to trust it."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, topology: str, fitted: BodyFit | None = None,
                  **fit_options):
@@ -50,6 +55,7 @@ class Correspondence:
         self.template_gap = np.linalg.norm(self.fitted.vertices - self.template, axis=1)  # (V_a,) template to mesh
         self.mesh_gap = np.linalg.norm(self.vertices - back, axis=1)  # (N,) mesh to template
         self.rms = float(np.sqrt(np.square(np.concatenate([self.template_gap, self.mesh_gap])).mean()))
+        self.unposed_template = self.fitted.unposed(self.template).astype(np.float32)
 
     def to_template(self, frames: np.ndarray) -> np.ndarray:
         """Frames ``(..., N, 3)`` of the mesh's topology as ``(..., V_a, 3)`` on Anny's."""

@@ -272,7 +272,7 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
                 case = pair[variant]
                 same = np.array_equal(case["faces"], faces.numpy())
                 correspondence = None if same else Correspondence(case["target"], case["faces"], topology)
-                target = case["target"] if same else correspondence.template
+                target = case["target"] if same else correspondence.unposed_template
                 driver_trust = None
                 if "driving" in case:
                     driver, driver_trust = register_clip(case["driving"], case["driving_faces"], topology)

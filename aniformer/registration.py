@@ -103,11 +103,24 @@ class AnnyTemplate:
         self.sample_weights = torch.from_numpy(weights.astype(np.float32))
 
     def vertices(self, phenotype: torch.Tensor, rotvecs: torch.Tensor) -> torch.Tensor:
+        rest, transforms = self._skeleton(phenotype, rotvecs)
+        return self.model.get_skinned_vertices(rest["rest_vertices"], transforms)
+
+    def _skeleton(self, phenotype: torch.Tensor, rotvecs: torch.Tensor):
+        """(Anny's rest body of ``phenotype``, its bones' transforms ``(B, bones, 4, 4)`` in ``rotvecs``)."""
         rest = self.model(phenotype_kwargs=phenotype)
         deltas = torch.eye(4).repeat(len(rotvecs), self.bones, 1, 1)
         deltas = torch.cat([torch.cat([roma.rotvec_to_rotmat(rotvecs), deltas[..., :3, 3:]], -1), deltas[..., 3:, :]], -2)
         transforms, _ = self.model.get_bone_transforms(deltas, rest["rest_bone_poses"])
-        return self.model.get_skinned_vertices(rest["rest_vertices"], transforms)
+        return rest, transforms
+
+    def vertex_transforms(self, phenotype: torch.Tensor, rotvecs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(rest vertices ``(B, V, 3)``, each vertex's skinning transform ``(B, V, 4, 4)``: its bones' transforms
+        blended by its weights, what linear blend skinning moves it by)."""
+        rest, transforms = self._skeleton(phenotype, rotvecs)
+        weights, bones = self.model.vertex_bone_weights, self.model.vertex_bone_indices
+        blended = (weights[None, ..., None, None] * transforms[:, bones]).sum(2)
+        return rest["rest_vertices"], blended
 
     @functools.cached_property
     def geodesic(self) -> GeodesicFrame:
@@ -192,11 +205,18 @@ def one_thread():
 @dataclass(frozen=True)
 class BodyFit:
     """Anny fitted onto a mesh: the template's vertices in the mesh's coordinates, the fitted body's
-    height at rest (metres of the mesh) and the symmetric Chamfer loss of the pose fit."""
+    height at rest (metres of the mesh), the symmetric Chamfer loss of the pose fit, and per template
+    vertex the inverse of its skinning in the fitted pose (``unposed``)."""
 
     vertices: np.ndarray  # (V_a, 3) float32
     height: float
     loss: float
+    to_rest: np.ndarray  # (V_a, 3, 4) per template vertex: the inverse of its skinning, mesh coordinates to Anny's rest pose
+
+    def unposed(self, points: np.ndarray) -> np.ndarray:
+        """``points (V_a, 3)``, one near each template vertex (the template on the mesh), moved to Anny's rest pose
+        by the inverse of that vertex's skinning in the fitted pose."""
+        return (self.to_rest[..., :3] @ points[..., None])[..., 0] + self.to_rest[..., 3]
 
 
 def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
@@ -259,9 +279,18 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
             optimiser.zero_grad()
             (fit + 10.0 * smooth).backward()
             optimiser.step()
-        rest = template.vertices(torch.sigmoid(params[0][best : best + 1]), torch.zeros(1, template.bones, 3)).detach()
-    height = float(rest[0, :, 2].amax() - rest[0, :, 2].amin())
-    return BodyFit(((posed + offsets).detach()[0].numpy() + centre).astype(np.float32), height, float(fit.detach()))
+        phenotype = torch.sigmoid(params[0][best : best + 1])
+        rest, fitted = (x[0].detach().double() for x in template.vertex_transforms(phenotype, params[1][best : best + 1]))
+        _, standing = (x[0].detach().double() for x in template.vertex_transforms(phenotype, torch.zeros(1, template.bones, 3)))
+    at_rest = (standing[:, :3, :3] @ rest[..., None])[..., 0] + standing[:, :3, 3]  # Anny's rest pose: no rotation
+    height = float(at_rest[:, 2].amax() - at_rest[:, 2].amin())
+    # per vertex: the fit's placement of the skinned body (its centring, the fitted shift, the mesh's centre)
+    placed = posed[0].double() - (fitted[:, :3, :3] @ rest[..., None])[..., 0] - fitted[:, :3, 3] + torch.from_numpy(centre)
+    unskin = torch.linalg.inv(fitted[:, :3, :3])
+    to_rest = torch.cat([standing[:, :3, :3] @ unskin, (standing[:, :3, 3:] - standing[:, :3, :3] @ unskin
+                                                        @ (fitted[:, :3, 3] + placed)[..., None])], -1)
+    return BodyFit(((posed + offsets).detach()[0].numpy() + centre).astype(np.float32), height, float(fit.detach()),
+                   to_rest.numpy())
 
 
 def body_axis(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

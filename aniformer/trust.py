@@ -180,7 +180,11 @@ def injected_failures(correspondence) -> dict[str, object]:
 
     def turned(axis: np.ndarray, angle: float) -> BodyFit:
         rotation = roma.rotvec_to_rotmat(torch.from_numpy(axis / np.linalg.norm(axis) * angle)).numpy()
-        return BodyFit(((fitted.vertices - centre) @ rotation.T + centre).astype(np.float32), fitted.height, fitted.loss)
+        shift = np.broadcast_to(centre - rotation.T @ centre, fitted.vertices.shape)
+        to_rest = np.concatenate([fitted.to_rest[..., :3] @ rotation.T,  # a point is turned back, then unposed
+                                  fitted.unposed(shift)[..., None]], -1)
+        return BodyFit(((fitted.vertices - centre) @ rotation.T + centre).astype(np.float32), fitted.height, fitted.loss,
+                       to_rest)
 
     up = body_axis(fitted.vertices, correspondence.template_faces).astype(np.float64)
     across = np.cross(up, [0.0, 0.0, 1.0] if abs(up[2]) < 0.9 else [1.0, 0.0, 0.0])
@@ -189,7 +193,7 @@ def injected_failures(correspondence) -> dict[str, object]:
     _, mirror = scipy.spatial.cKDTree(rest * [-1, 1, 1]).query(rest)  # Anny is symmetric in x at rest
     parts, names = part_labels(correspondence.topology)
     left_arm = np.isin(parts, [names.index(n) for n in ("upper arm L", "forearm L", "hand L")])
-    swapped = fitted.vertices.copy()
-    swapped[left_arm] = swapped[mirror[left_arm]]
+    swapped, swapped_to_rest = fitted.vertices.copy(), fitted.to_rest.copy()
+    swapped[left_arm], swapped_to_rest[left_arm] = swapped[mirror[left_arm]], swapped_to_rest[mirror[left_arm]]
     return {"heading": turned(up, np.pi), "tilt": turned(across, np.pi / 2),
-            "swapped arm": BodyFit(swapped, fitted.height, fitted.loss)}
+            "swapped arm": BodyFit(swapped, fitted.height, fitted.loss, swapped_to_rest)}

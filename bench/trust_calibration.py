@@ -34,7 +34,7 @@ VARIANTS = ("remeshed", "posed", "rotated")
 
 def _score(fit: Correspondence, predict, driving: np.ndarray, case: dict, frames: slice) -> dict:
     faces = torch.from_numpy(fit.template_faces)
-    posed = predict(torch.from_numpy(driving[None]), torch.from_numpy(fit.template[None]), faces)[0].numpy()
+    posed = predict(torch.from_numpy(driving[None]), torch.from_numpy(fit.unposed_template[None]), faces)[0].numpy()
     result = fit.from_template(posed)
     trust = animation_trust(result, fit.vertices, fit.faces, fit)
     truth = case["ground_truth"][frames]
