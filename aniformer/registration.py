@@ -286,7 +286,7 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
     height = float(at_rest[:, 2].amax() - at_rest[:, 2].amin())
     # per vertex: the fit's placement of the skinned body (its centring, the fitted shift, the mesh's centre)
     placed = posed[0].double() - (fitted[:, :3, :3] @ rest[..., None])[..., 0] - fitted[:, :3, 3] + torch.from_numpy(centre)
-    unskin = torch.linalg.inv(fitted[:, :3, :3])
+    unskin = torch.linalg.pinv(fitted[:, :3, :3])  # a blend of two rotations 180 degrees apart is singular
     to_rest = torch.cat([standing[:, :3, :3] @ unskin, (standing[:, :3, 3:] - standing[:, :3, :3] @ unskin
                                                         @ (fitted[:, :3, 3] + placed)[..., None])], -1)
     return BodyFit(((posed + offsets).detach()[0].numpy() + centre).astype(np.float32), height, float(fit.detach()),
