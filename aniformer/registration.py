@@ -279,9 +279,9 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
             optimiser.zero_grad()
             (fit + 10.0 * smooth).backward()
             optimiser.step()
-        phenotype = torch.sigmoid(params[0][best : best + 1])
-        rest, fitted = (x[0].detach().double() for x in template.vertex_transforms(phenotype, params[1][best : best + 1]))
-        _, standing = (x[0].detach().double() for x in template.vertex_transforms(phenotype, torch.zeros(1, template.bones, 3)))
+        rest, skinning = template.vertex_transforms(torch.sigmoid(params[0][best : best + 1]).expand(2, -1),
+                                                    torch.cat([params[1][best : best + 1], torch.zeros(1, template.bones, 3)]))
+        rest, (fitted, standing) = rest[0].detach().double(), skinning.detach().double()  # the fitted pose, the rest pose
     at_rest = (standing[:, :3, :3] @ rest[..., None])[..., 0] + standing[:, :3, 3]  # Anny's rest pose: no rotation
     height = float(at_rest[:, 2].amax() - at_rest[:, 2].amin())
     # per vertex: the fit's placement of the skinned body (its centring, the fitted shift, the mesh's centre)
