@@ -42,6 +42,10 @@ PARTNER_SCALE = 0.1  # metres: partners farther apart than this pull less (a rob
 COARSE_LR = 0.03  # measured: 0.06 sends rest-pose bodies to wrong basins (6-9 cm off instead of 0.6)
 PREFIT_STEPS = 100  # of the pose seeds pulled to their geodesic partners alone, before any Chamfer step
 PREFIT_LR = 0.05
+# (step, rows going on) of the coarse round and the refinement, from the loss curves of 32 posed validation
+# bodies: 24 rows at coarse step 16 already held all 8 finalists, 3 at refinement step 60 the winner; a margin here
+COARSE_PRUNE = (20, 24)
+REFINE_PRUNE = (60, 4)
 NEIGHBOURS_EVERY = 2  # Chamfer steps per nearest-neighbour search (the searches were a third of the fit's time)
 POSE_PRIOR = 1e-4  # per rad^2 of bone rotation: keeps unconstrained bones (fingers, face) at rest
 
@@ -103,23 +107,29 @@ class AnnyTemplate:
         self.sample_weights = torch.from_numpy(weights.astype(np.float32))
 
     def vertices(self, phenotype: torch.Tensor, rotvecs: torch.Tensor) -> torch.Tensor:
-        rest, transforms = self._skeleton(phenotype, rotvecs)
-        return self.model.get_skinned_vertices(rest["rest_vertices"], transforms)
+        rest = self.rest(phenotype)
+        return self.model.get_skinned_vertices(rest["rest_vertices"], self._skeleton(rest, rotvecs))
 
-    def _skeleton(self, phenotype: torch.Tensor, rotvecs: torch.Tensor):
-        """(Anny's rest body of ``phenotype``, its bones' transforms ``(B, bones, 4, 4)`` in ``rotvecs``)."""
-        rest = self.model(phenotype_kwargs=phenotype)
+    def rest(self, phenotype: torch.Tensor) -> dict:
+        """Anny's rest body of ``phenotype (B, 6)``: its vertices and bones."""
+        # not Anny's ``forward``: it would also pose and skin the body at identity, unused here (~13% of a fit step)
+        _, phenotype, local_changes, face_expression = self.model.get_tensor_inputs(None, phenotype, None, None)
+        return self.model.get_rest_model(self.model._get_phenotype_blendshape_coefficients(phenotype, local_changes,
+                                                                                            face_expression))
+
+    def _skeleton(self, rest: dict, rotvecs: torch.Tensor) -> torch.Tensor:
+        """The ``rest`` body's bones' transforms ``(B, bones, 4, 4)`` in ``rotvecs``."""
         deltas = torch.eye(4).repeat(len(rotvecs), self.bones, 1, 1)
         deltas = torch.cat([torch.cat([roma.rotvec_to_rotmat(rotvecs), deltas[..., :3, 3:]], -1), deltas[..., 3:, :]], -2)
         transforms, _ = self.model.get_bone_transforms(deltas, rest["rest_bone_poses"])
-        return rest, transforms
+        return transforms
 
     def vertex_transforms(self, phenotype: torch.Tensor, rotvecs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(rest vertices ``(B, V, 3)``, each vertex's skinning transform ``(B, V, 4, 4)``: its bones' transforms
         blended by its weights, what linear blend skinning moves it by)."""
-        rest, transforms = self._skeleton(phenotype, rotvecs)
+        rest = self.rest(phenotype)
         weights, bones = self.model.vertex_bone_weights, self.model.vertex_bone_indices
-        blended = (weights[None, ..., None, None] * transforms[:, bones]).sum(2)
+        blended = (weights[None, ..., None, None] * self._skeleton(rest, rotvecs)[:, bones]).sum(2)
         return rest["rest_vertices"], blended
 
     @functools.cached_property
@@ -142,21 +152,25 @@ def anny_template(topology: str, samples: int = TEMPLATE_SAMPLES) -> AnnyTemplat
     return AnnyTemplate(topology, samples)
 
 
-def _fit_body(template: AnnyTemplate, cloud: OrientedCloud, start: list[torch.Tensor], steps: int,
-              partners: torch.Tensor, weights: torch.Tensor, lr: float = 0.03):
-    """Adam on (phenotype logits, bone rotations, shift) of each batch row from ``start``, pulling each
+def _fit_body(template: AnnyTemplate, cloud: OrientedCloud, start: list[torch.Tensor], steps: range, total: int,
+              partners: torch.Tensor, weights: torch.Tensor, lr: float, moments: list[dict] | None = None):
+    """Adam on (phenotype logits, bone rotations, shift) of each batch row from ``start`` (with Adam's
+    ``moments`` of an earlier part of the round, if any), over ``steps`` of a round of ``total``, pulling each
     template vertex to its geodesic partner on the mesh (``partners (B, V_a, 3)``) with ``weights (B,)``:
-    (the parameters, the posed vertices, the Chamfer loss per row: what hypotheses are compared by)."""
+    (the parameters, the posed vertices, the Chamfer loss per row: what hypotheses are compared by, Adam's
+    moments)."""
     phenotype, rotvecs, shift = params = [p.detach().clone().requires_grad_(True) for p in start]
     optimiser = torch.optim.Adam(params, lr=lr)
-    for step in range(steps):
+    for p, state in zip(params, moments or []):
+        optimiser.state[p] = state
+    for step in steps:
         posed = template.vertices(torch.sigmoid(phenotype), rotvecs)
         posed = posed - (posed.amin(1, keepdim=True) + posed.amax(1, keepdim=True)) / 2 + shift
         prior = POSE_PRIOR * rotvecs[:, 1:].square().sum((1, 2))
         fit = prior
         if cloud is not None:
             points, point_normals = template.samples(posed)
-            if step % NEIGHBOURS_EVERY == 0 or step == steps - 1:  # the last step's loss ranks the hypotheses
+            if step % NEIGHBOURS_EVERY == 0 or step == steps.start or step == total - 1:  # the last ranks the hypotheses
                 nearest = nearest_pairs(points, point_normals, cloud)
             fit = fit + chamfer(points, cloud, nearest)
         apart = (posed - partners).square().sum(-1)
@@ -164,23 +178,40 @@ def _fit_body(template: AnnyTemplate, cloud: OrientedCloud, start: list[torch.Te
         optimiser.zero_grad()
         (fit + pulled).sum().backward()
         optimiser.step()
-    return params, posed.detach(), fit.detach()
+    return params, posed.detach(), fit.detach(), [optimiser.state[p] for p in params]
 
 
 def _fit_bodies(template: AnnyTemplate, cloud: OrientedCloud, start: list[torch.Tensor], steps: int,
-                partners: torch.Tensor, weights: torch.Tensor, lr: float = 0.03):
+                partners: torch.Tensor, weights: torch.Tensor, lr: float = 0.03,
+                prune: tuple[int, int] | None = None):
     """``_fit_body`` with the rows split over ``FIT_THREADS`` threads: the rows are independent (a summed loss,
-    Adam per element), and the k-d tree searches and tensor ops release the GIL."""
-    parts = [rows for rows in np.array_split(np.arange(len(start[0])), FIT_THREADS) if len(rows)]
+    Adam per element), and the k-d tree searches and tensor ops release the GIL. ``prune (step, keep)``: at
+    ``step`` only the ``keep`` rows of least loss go on, as they would have (successive halving). (the
+    parameters, posed vertices and loss of the rows that went on, those rows' indices)."""
+    rows, params, moments, loss = torch.arange(len(start[0])), start, None, None
+    for part in [range(steps)] if prune is None or prune[0] >= steps else [range(prune[0]), range(prune[0], steps)]:
+        if part.start:
+            going_on = loss.argsort()[: prune[1]]
+            rows, params, moments = rows[going_on], [p[going_on] for p in params], _moment_rows(moments, going_on)
+        chunks = [torch.from_numpy(c) for c in np.array_split(np.arange(len(rows)), FIT_THREADS) if len(c)]
 
-    def fit(rows):
-        with torch.enable_grad():  # grad mode is per thread
-            return _fit_body(template, cloud, [p[rows] for p in start], steps, partners[rows], weights[rows], lr)
+        def fit(chunk, part=part, params=params, moments=moments, rows=rows):
+            with torch.enable_grad():  # grad mode is per thread
+                return _fit_body(template, cloud, [p[chunk] for p in params], part, steps, partners[rows[chunk]],
+                                 weights[rows[chunk]], lr, moments and _moment_rows(moments, chunk))
 
-    with concurrent.futures.ThreadPoolExecutor(len(parts)) as pool:
-        results = list(pool.map(fit, parts))
-    params = [torch.cat([r[0][k] for r in results]) for k in range(len(start))]
-    return params, torch.cat([r[1] for r in results]), torch.cat([r[2] for r in results])
+        with concurrent.futures.ThreadPoolExecutor(len(chunks)) as pool:
+            results = list(pool.map(fit, chunks))
+        params, posed, loss = ([torch.cat(k) for k in zip(*(r[0] for r in results))],
+                               torch.cat([r[1] for r in results]), torch.cat([r[2] for r in results]))
+        moments = [{k: torch.cat([r[3][i][k] for r in results]) if v.dim() else v for k, v in results[0][3][i].items()}
+                   for i in range(len(params))]
+    return [p.detach() for p in params], posed, loss, rows
+
+
+def _moment_rows(moments: list[dict], rows: torch.Tensor) -> list[dict]:
+    """Adam's per-parameter state for a subset of the batch rows (its step count copied: each optimiser counts its own)."""
+    return [{k: v[rows] if v.dim() else v.clone() for k, v in state.items()} for state in moments]
 
 
 def kabsch(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -257,16 +288,17 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
         # posed bodies: the skeleton bent onto the partners first (cheap: no nearest-neighbour search), so the
         # Chamfer round starts in the right basin (posed validation bodies: 7.5 -> 2.1 cm mean error)
         posed_rows = len(seeds) * len(SIDES)  # the orientation rows have no partners to be pulled to
-        prefit, _, _ = _fit_bodies(coarse, None, [p[:posed_rows] for p in start], PREFIT_STEPS,
+        prefit, _, _, _ = _fit_bodies(coarse, None, [p[:posed_rows] for p in start], PREFIT_STEPS,
                                    partners[side[:posed_rows]], weights[:posed_rows], lr=PREFIT_LR)
         start = [torch.cat([fitted, p[posed_rows:]]) for fitted, p in zip(prefit, start)]
-        params, _, loss = _fit_bodies(coarse, coarse_cloud, start, steps[0],
-                                    partners[side], PARTNER_WEIGHT[0] * weights, lr=COARSE_LR)
+        params, _, loss, rows = _fit_bodies(coarse, coarse_cloud, start, steps[0], partners[side],
+                                            PARTNER_WEIGHT[0] * weights, lr=COARSE_LR, prune=COARSE_PRUNE)
         kept = loss.argsort()[:KEEP]
+        params, kept = [p[kept] for p in params], rows[kept]
         partners = torch.from_numpy(_dense_targets(template.geodesic.coordinates, frame, mesh.vertices - centre,
                                                    SIDES)).float()
-        params, posed, loss = _fit_bodies(template, cloud, [p[kept] for p in params], steps[1],
-                                        partners[side[kept]], PARTNER_WEIGHT[1] * weights[kept])
+        params, posed, loss, _ = _fit_bodies(template, cloud, params, steps[1], partners[side[kept]],
+                                             PARTNER_WEIGHT[1] * weights[kept], prune=REFINE_PRUNE)
         best = int(loss.argmin())
         posed = posed[best : best + 1]
         offsets = torch.zeros_like(posed, requires_grad=True)

@@ -270,3 +270,28 @@ def test_a_strongly_posed_character_is_registered_onto_its_true_body(stream):
     rest = center_bbox(body.pose(identity, np.zeros((1, len(body.bone_labels), 3), np.float32))[0])
     assert np.linalg.norm(center_bbox(fit.unposed_template) - rest, axis=1).mean() < 0.03
     assert np.linalg.norm(center_bbox(fit.template) - rest, axis=1).mean() > 0.10
+
+
+def test_pruned_fit_rounds_go_on_exactly_as_the_rows_would_have():
+    """Successive halving in ``_fit_bodies``: the rows that go on after the pruning step end where they end
+    without pruning (rows are independent; Adam's moments travel with them), and they are the ones of least
+    loss at that step."""
+    from aniformer.registration import COARSE_TOPOLOGY, _fit_bodies, anny_template
+    from aniformer.surface import OrientedCloud, normals
+
+    template = anny_template(COARSE_TOPOLOGY, 200)
+    rotvecs = 0.2 * torch.randn(6, template.bones, 3, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        body = template.vertices(torch.full((1, 6), 0.4), rotvecs[:1])[0].numpy().astype(np.float64)
+    cloud = OrientedCloud.of(body - (body.min(0) + body.max(0)) / 2, normals(body, template.faces)[0])
+    start = [torch.zeros(6, 6), rotvecs, torch.zeros(6, 1, 3)]
+    partners, weights = torch.zeros(6, len(body), 3), torch.zeros(6)
+    with torch.enable_grad():
+        full, _, full_loss, everyone = _fit_bodies(template, cloud, start, 7, partners, weights)
+        early, _, early_loss, _ = _fit_bodies(template, cloud, start, 4, partners, weights)
+        pruned, _, pruned_loss, rows = _fit_bodies(template, cloud, start, 7, partners, weights, prune=(4, 3))
+    assert torch.equal(everyone, torch.arange(6)) and len(rows) == 3
+    assert set(rows.tolist()) == set(early_loss.argsort()[:3].tolist())
+    for fitted, alone in zip(pruned, full):
+        torch.testing.assert_close(fitted, alone[rows], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(pruned_loss, full_loss[rows], rtol=1e-4, atol=1e-9)
