@@ -170,8 +170,10 @@ def _sequence_box(vertices: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, 
 
 
 def _add_mesh(ax, triangles: np.ndarray) -> Poly3DCollection:
-    """Shaded ``triangles`` drawn on ``ax``."""
-    return ax.add_collection3d(Poly3DCollection(triangles, facecolors=_shaded_colours(triangles), linewidths=0))
+    """Shaded ``triangles`` drawn on ``ax``: the collection, for removing it."""
+    mesh = Poly3DCollection(triangles, facecolors=_shaded_colours(triangles), linewidths=0)
+    ax.add_collection3d(mesh)
+    return mesh
 
 
 def _frame_axes(ax, box: tuple, view: tuple[float, float], zoom: float) -> None:
