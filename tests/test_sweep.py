@@ -153,9 +153,16 @@ RAN = {"memory_decision": "ok", "requested_batch_size": 4, "run_batch_size": 4, 
        "predicted_memory_gb": 0.862, "peak_memory_gb": 0.735}
 
 
-def test_live_table_shows_weights_window_memory_status_epoch_and_best_pmd(capsys):
+def test_live_table_shows_weights_window_memory_status_epoch_and_best_pmd(capsys, monkeypatch):
     """The console's trial table (SweepReporter): a row per trial with its lambdas, T, batch, predicted
     memory (before the trial reported: the gate's prediction), the sweep's status, epochs, best PMD."""
+    from types import SimpleNamespace
+
+    from pipeline import sweep_table
+
+    # the table's clock stands still ~75 s after the sweep's start: planning the trials took 44 s on a loaded machine
+    frozen = time.time()
+    monkeypatch.setattr(sweep_table, "time", SimpleNamespace(time=lambda: frozen))
     reporter = _reporter("sweep.memory_limit_gb=1.2")
     trials = [
         _trial(0, "TERMINATED", {"rec": 8.46, "motion": 1.41e-4, "appearance": 2.37e-3, "window": 5},
