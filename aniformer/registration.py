@@ -170,7 +170,8 @@ def _fit_body(template: AnnyTemplate, cloud: OrientedCloud, start: list[torch.Te
         fit = prior
         if cloud is not None:
             points, point_normals = template.samples(posed)
-            if step % NEIGHBOURS_EVERY == 0 or step == steps.start or step == total - 1:  # the last ranks the hypotheses
+            # a part's first step has no neighbours yet; the round's last step's loss ranks the hypotheses
+            if step % NEIGHBOURS_EVERY == 0 or step == steps.start or step == total - 1:
                 nearest = nearest_pairs(points, point_normals, cloud)
             fit = fit + chamfer(points, cloud, nearest)
         apart = (posed - partners).square().sum(-1)
