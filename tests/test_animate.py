@@ -368,6 +368,18 @@ def test_write_obj_writes_plain_v_and_f_lines(tmp_path):
                         "v 1.000000 2.000000 3.000000\nf 1 2 3\nf 3 2 1\n")
 
 
+def test_write_obj_numbers_match_printf_byte_for_byte(tmp_path):
+    rng = np.random.default_rng(0)
+    halves = (np.arange(-3000, 3000) + 0.5) * 1e-6  # decimal ties, which float64 holds only approximately
+    finite = np.concatenate([rng.standard_normal(3000) * scale for scale in (1e-4, 1, 30, 1e4, 1e8)]
+                            + [rng.standard_normal(3000).astype(np.float32), halves, np.arange(3000) * 1e-3,
+                               [0.0, -0.0, 0.9999995, -9.9999999, 999999.9999996, 4.5e9]])
+    for vertices in (finite.reshape(-1, 3), np.array([[1.5, np.nan, -np.inf]])):  # printf itself formats non-finite
+        text = write_obj(tmp_path / "t.obj", vertices, np.array([[0, 0, 0]])).read_bytes()
+        expected = "".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in vertices.tolist())
+        assert text == b"# aniformer\n" + expected.encode() + b"f 1 1 1\n"
+
+
 def test_preview_mesh_decimates_every_frame_alike():
     from aniformer.io.render import preview_mesh
 

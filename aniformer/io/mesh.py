@@ -111,14 +111,43 @@ def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
 
 
 def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> Path:
-    """A plain OBJ (v / f lines, 1-based, 6 decimals), written atomically. Each block is one C-level format of
-    all its numbers, and the faces' block is cached per topology: an 18k-vertex frame in ~10 ms, where
-    formatting line by line took 65."""
-    vertex_lines = ("v %.6f %.6f %.6f\n" * len(vertices)) % tuple(np.asarray(vertices, np.float64).ravel().tolist())
+    """A plain OBJ (v / f lines, 1-based, 6 decimals), written atomically. The vertex lines are built by numpy
+    (`_vertex_lines`) and the faces' block is cached per topology: an 18k-vertex frame in ~9 ms on 2 cores, where
+    one C-level format of all its numbers took 22."""
+    vertex_lines = _vertex_lines(np.asarray(vertices, np.float64).ravel())
     faces = np.ascontiguousarray(faces, np.int64)
-    with atomic_path(path) as tmp:
-        Path(tmp).write_bytes(b"# aniformer\n" + vertex_lines.encode() + _face_lines(faces.tobytes()))
+    with atomic_path(path) as tmp, open(tmp, "wb") as file:
+        file.writelines((b"# aniformer\n", vertex_lines, _face_lines(faces.tobytes())))
     return Path(path)
+
+
+def _vertex_lines(x: np.ndarray) -> bytes:
+    """b"v %.6f %.6f %.6f\\n" for each triple of `x`, byte for byte, as one numpy array of fixed-width fields with
+    the unused characters (sign, leading zeros, "v " of y and z) masked out."""
+    units = np.abs(x) * 1e6
+    if not np.all(units < 2.0**52):  # non-finite, or past the integers float64 holds exactly
+        return (("v %.6f %.6f %.6f\n" * (len(x) // 3)) % tuple(x.tolist())).encode()
+    for i in np.flatnonzero(np.abs(units - np.floor(units) - 0.5) <= 4e-16 * units):
+        units[i] = int(f"{abs(x[i]):.6f}".replace(".", ""))  # a product this near a half: %.6f's exact decimal decides
+    np.rint(units, out=units)
+    width = len(str(int(units.max(initial=0)) // 1_000_000))
+    places = 10.0 ** np.arange(width + 5, -1, -1)  # the whole part's digits, then six decimals
+    shifted = units / places[:, None]  # exact in float64, and vectorised where numpy's int64 division is not
+    np.floor(shifted, out=shifted)
+    shifted[1:] -= 10 * shifted[:-1]
+    digits = shifted.astype(np.uint8) + ord("0")
+    fields = np.empty((len(x), width + 11), np.uint8)  # "v ", "-", digits, ".", separator
+    fields[:, :3] = np.frombuffer(b"v -", np.uint8)
+    fields[:, 3:3 + width] = digits[:width].T
+    fields[:, 3 + width] = ord(".")
+    fields[:, 4 + width:-1] = digits[width:].T
+    fields[:, -1] = ord(" ")
+    fields[2::3, -1] = ord("\n")
+    keep = np.ones(fields.shape, bool)
+    keep[1::3, :2] = keep[2::3, :2] = False
+    keep[:, 2] = np.signbit(x)
+    keep[:, 3:2 + width] = units[:, None] >= places[:width - 1]  # no leading zeros before the units digit
+    return fields[keep].tobytes()
 
 
 @functools.lru_cache(maxsize=4)
