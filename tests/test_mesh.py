@@ -102,3 +102,37 @@ def test_units_scale_to_metres_and_absurd_coordinates_are_refused(tmp_path):
     (tmp_path / "bad.obj").write_text("v 0 0 zero\n")
     with pytest.raises(MeshError, match="line 1 is not a valid OBJ 'v' line"):
         load_mesh(tmp_path / "bad.obj")
+
+
+OBJ_TEXTS = {  # the numpy reader takes the first five; the rest go line by line, with the same result
+    "triangles": "# c\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "blender": "o Body\nv 0 0 0\nv 1 0 0 0.5 0.5 0.5\nv 0 1 0\nvt 0 0\nvn 0 0 1\ns 1\nusemtl skin\nf 1/1/1 2/1/1 3/1/1\n",
+    "spaced": "  v\t0  0 0 \r\nv 1.5e0 0 0\r\n\tv 0 -1 0\r\nf 1//1\t2//1  3//1 \r\nf 3 2 1\r\nvt 1 1\r\n",
+    "interleaved": "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nv 0 0 1\nf 2 3 4\n",
+    "zero index": "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 2 3\n",
+    "quad": "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n",
+    "negative": "v 0 0 0\nv 1 0 0\nv 0 1 0\nf -3 -2 -1\n",
+    "old mac breaks": "v 0 0 0\rv 1 0 0\rv 0 1 0\rf 1 2 3\r",
+    "vertical tab": "v 0 0 0\nv\x0b1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "non-ascii comment": "# café\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+}
+
+
+@pytest.mark.parametrize("name", OBJ_TEXTS)
+def test_obj_read_by_numpy_matches_reading_line_by_line(tmp_path, name):
+    from aniformer.io.mesh import _read_obj_by_line, _read_triangle_obj, read_obj
+
+    path = tmp_path / "m.obj"
+    path.write_bytes(OBJ_TEXTS[name].encode())
+    taken = _read_triangle_obj(path.read_bytes())
+    assert (taken is not None) == (list(OBJ_TEXTS).index(name) < 5)
+    for got, expected in zip(read_obj(path), _read_obj_by_line(path), strict=True):
+        assert got.dtype == expected.dtype
+        np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("line", ["v 0 0 zero", "v 0 0", "f 1 2 x", "f 1 2 3 4x", "v 0 0 0#c"])
+def test_an_obj_line_the_numpy_reader_cannot_take_is_refused_by_its_number(tmp_path, line):
+    (tmp_path / "bad.obj").write_text(f"v 0 0 0\nv 1 0 0\nv 0 1 0\n{line}\nf 1 2 3\n")
+    with pytest.raises(MeshError, match=f"line 4 is not a valid OBJ '{line[0]}' line"):
+        load_mesh(tmp_path / "bad.obj")
