@@ -37,15 +37,17 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
-import trimesh
 
 from aniformer.errors import MeshError, UserError
 from aniformer.geometry import CENTER_MODES, center_bbox
 from aniformer.io.files import natural_key
 from aniformer.io.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, load_mesh
+
+if TYPE_CHECKING:  # torch and trimesh load in the functions that use them: jobs' --help and input checks stay fast
+    import torch
 
 COMBINE_RULES = ("mean", "center")
 # Estimated inference times beyond which `animate_sequence` warns, and refuses unless `force`.
@@ -67,6 +69,8 @@ def matmul_flops_per_second(device: str | torch.device) -> float:
     (well under a second on 2 CPU cores). The model's layers reach less (2 shared CPU cores: 60-100
     GFLOP/s for the product, 23-74 for windows of 20,000-163,842 vertices), so times estimated from it
     are lower bounds."""
+    import torch
+
     device = torch.device(device)
     if str(device) not in _MATMUL_RATES:
         n = 2048 if device.type == "cuda" else 1024
@@ -200,7 +204,6 @@ def _center(windows: torch.Tensor, mode: str) -> torch.Tensor:
     return windows
 
 
-@torch.no_grad()  # not inference_mode: roma caches tensors made here, and autograd (registration) refuses them
 def animate_sequence(
     model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     driving: np.ndarray | torch.Tensor,
@@ -226,42 +229,47 @@ def animate_sequence(
         raise ValueError(f"center must be one of {CENTER_MODES}, got {center!r}")
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-    device = torch.device(device)
-    raw = torch.as_tensor(np.asarray(driving, np.float32))
-    target_t = torch.as_tensor(np.asarray(target, np.float32))
-    N, V2 = len(raw), len(target_t)
-    front, back, offsets = window_plan(N, window, outputs, combine)
-    first_out = list(range(window))[outputs]
-    columns = [first_out.index(o) for o in offsets]  # where each used offset sits in the model output
-    index = torch.cat([torch.zeros(front, dtype=torch.long), torch.arange(N),
-                       torch.full((back,), N - 1, dtype=torch.long)])
-    starts = torch.arange(len(index) - window + 1)
-    check_inference_time(model, len(starts), (raw.shape[1], V2), device, force)
-    drv = raw if center == "window" else _center(raw.unsqueeze(0), center)[0]
-    tgt = (center_bbox(target_t) if center != "none" else target_t).to(device)
-    total = torch.zeros(N, V2, 3, dtype=torch.float64)
-    count = torch.zeros(N, dtype=torch.float64)
-    steps = torch.arange(window)
-    for lo in range(0, len(starts), batch_size):
-        s = starts[lo:lo + batch_size]
-        windows = drv[index[s[:, None] + steps]]  # (B, T, V1, 3)
-        if center == "window":
-            windows = _center(windows, "window")
-        pred = model(windows.to(device), tgt.expand(len(s), V2, 3)).float().cpu()
-        for column, offset in zip(columns, offsets):
-            frame = s + offset - front
-            keep = (frame >= 0) & (frame < N)
-            total.index_add_(0, frame[keep], pred[keep, column].double())
-            count.index_add_(0, frame[keep], torch.ones(int(keep.sum()), dtype=torch.float64))
-        if progress is not None:
-            progress(len(s))
-    assert bool((count > 0).all()), "every frame is covered by a window"
-    return (total / count[:, None, None]).float().numpy()
+    import torch
+
+    with torch.no_grad():  # not inference_mode: roma caches tensors made here, and autograd (registration) refuses them
+        device = torch.device(device)
+        raw = torch.as_tensor(np.asarray(driving, np.float32))
+        target_t = torch.as_tensor(np.asarray(target, np.float32))
+        N, V2 = len(raw), len(target_t)
+        front, back, offsets = window_plan(N, window, outputs, combine)
+        first_out = list(range(window))[outputs]
+        columns = [first_out.index(o) for o in offsets]  # where each used offset sits in the model output
+        index = torch.cat([torch.zeros(front, dtype=torch.long), torch.arange(N),
+                           torch.full((back,), N - 1, dtype=torch.long)])
+        starts = torch.arange(len(index) - window + 1)
+        check_inference_time(model, len(starts), (raw.shape[1], V2), device, force)
+        drv = raw if center == "window" else _center(raw.unsqueeze(0), center)[0]
+        tgt = (center_bbox(target_t) if center != "none" else target_t).to(device)
+        total = torch.zeros(N, V2, 3, dtype=torch.float64)
+        count = torch.zeros(N, dtype=torch.float64)
+        steps = torch.arange(window)
+        for lo in range(0, len(starts), batch_size):
+            s = starts[lo:lo + batch_size]
+            windows = drv[index[s[:, None] + steps]]  # (B, T, V1, 3)
+            if center == "window":
+                windows = _center(windows, "window")
+            pred = model(windows.to(device), tgt.expand(len(s), V2, 3)).float().cpu()
+            for column, offset in zip(columns, offsets):
+                frame = s + offset - front
+                keep = (frame >= 0) & (frame < N)
+                total.index_add_(0, frame[keep], pred[keep, column].double())
+                count.index_add_(0, frame[keep], torch.ones(int(keep.sum()), dtype=torch.float64))
+            if progress is not None:
+                progress(len(s))
+        assert bool((count > 0).all()), "every frame is covered by a window"
+        return (total / count[:, None, None]).float().numpy()
 
 
 def body_scale(target: np.ndarray, target_faces: np.ndarray, driver: np.ndarray, driver_faces: np.ndarray) -> float:
     """The size of a target body ``(V2, 3)`` over a driver's ``(V1, 3)``: the square root of their surface
     areas' ratio, the same in any pose and orientation and for any topology (heights are not: a kneeling body)."""
+    import trimesh
+
     areas = [trimesh.triangles.area(np.asarray(v, np.float64)[f]).sum() for v, f in ((target, target_faces),
                                                                                   (driver, driver_faces))]
     return float(np.sqrt(areas[0] / areas[1])) if areas[1] > 0 else 1.0

@@ -1,7 +1,8 @@
 """The layering of docs/architecture.md, checked: import-linter's contracts in pyproject.toml ([tool.importlinter]).
 
 `lint-imports` reads every module of aniformer/, pipeline/ and jobs/ (imports inside functions too) without
-importing them, so this takes well under a second.
+importing them, so this takes well under a second. The jobs' --help runs, which check what a job loads before
+its arguments are read, take a fraction of a second each.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ import subprocess
 import sys
 import tomllib
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -28,3 +31,18 @@ def test_import_contracts_are_kept():
     assert len(contracts) >= 5
     for contract in contracts:
         assert f"{contract['name']} KEPT" in output, f"{contract['name']!r} not reported kept:\n{output}"
+
+
+# Jobs whose --help loads no heavy library (seconds of start-up each); evaluate's pulls in the pipeline.
+LIGHT_HELP_JOBS = ("ablate", "animate", "export_meshes", "generate_data", "retarget", "sweep", "train")
+LOADED_AFTER_HELP = ("import runpy, sys; sys.argv = [sys.argv[1], '--help']\n"
+                     "try:\n    runpy.run_path(sys.argv[0], run_name='__main__')\nexcept SystemExit:\n    pass\n"
+                     "print('loaded:', *(m for m in ('torch', 'trimesh', 'ray', 'mlflow') if m in sys.modules))")
+
+
+@pytest.mark.parametrize("job", LIGHT_HELP_JOBS)
+def test_a_jobs_help_loads_no_heavy_library(job):
+    done = subprocess.run([sys.executable, "-c", LOADED_AFTER_HELP, f"jobs/{job}.py"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert "usage:" in done.stdout, done.stderr
+    assert done.stdout.rsplit("loaded:", 1)[1].split() == [], f"--help of jobs/{job}.py loaded those"

@@ -15,7 +15,6 @@ import re
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from aniformer.errors import MeshError
 from aniformer.io.files import atomic_path
@@ -98,6 +97,8 @@ def _read_obj_by_line(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh  # here, not at the top: a second of start-up that OBJ-only runs and --help never need
+
     try:
         # process=False keeps the vertex order and count exactly as in the file.
         mesh = trimesh.load(path, process=False, force="mesh")
@@ -131,6 +132,8 @@ def load_mesh(path: str | os.PathLike, max_vertices: int = DEFAULT_MAX_VERTICES,
 
 def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> Path:
     """Write a mesh atomically; the format follows the suffix."""
+    import trimesh
+
     path = Path(path)
     mesh = trimesh.Trimesh(vertices=np.asarray(vertices, np.float64), faces=faces, process=False)
     with atomic_path(path) as tmp:
