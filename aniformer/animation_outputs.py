@@ -103,7 +103,8 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, window: int
         "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
         "window": window, "combine": inference.combine, "windows": inference.windows,
         "input_center": inference.input_center,
-        "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template)}
+        "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template),
+                              "fit_cached": fit.fit_cached}
                        for role, fit in registrations.items()},
         "up": {role: {"axis": axis, "why": why} for role, (axis, why) in axes.items()},
         "trust": inference.trust.to_dict(),

@@ -176,7 +176,8 @@ def model_inputs(options: AnimateOptions, state: dict, config, driving, driving_
 def _report_fit(role: str, fit, template, seconds: float) -> None:
     print(f"registered the {role} ({len(fit.vertices):,} vertices) onto Anny {template.topology} "
           f"({template.num_vertices:,} vertices): {fit.rms * 1000:.1f} mm RMS surface distance, "
-          f"{seconds:.1f} s", file=sys.stderr)
+          f"{seconds:.1f} s{' (the fit of an earlier run, aniformer.registration.cached_fit)' if fit.fit_cached else ''}",
+          file=sys.stderr)
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,7 @@ import numpy as np
 import roma
 import torch
 
-from aniformer.registration import BodyFit, anny_template, fit_template
+from aniformer.registration import BodyFit, anny_template, cached_fit
 from aniformer.surface import closest_points
 from aniformer.transfer import vertex_rotations
 
@@ -36,7 +36,8 @@ class Correspondence:
     """A mesh registered to an Anny topology: read its frames on the template, carry poses back.
 
     ``template_faces`` is the Anny topology's; ``fitted`` Anny's fitted body (``BodyFit``: given, or
-    fitted here with ``fit_options``); ``template`` its vertices snapped onto the mesh's surface;
+    fitted here with ``fit_options``, or loaded if fitted before: ``fit_cached``, see
+    ``aniformer.registration.cached_fit``); ``template`` its vertices snapped onto the mesh's surface;
     ``unposed_template`` those in Anny's rest pose; ``rms`` the root-mean-square distance of the fitted
     template's vertices to the mesh's surface and of the mesh's vertices to the template's (mesh units).
     ``aniformer.trust`` says whether to trust it."""
@@ -47,7 +48,8 @@ class Correspondence:
         self.faces = np.asarray(faces, np.int64)
         self.topology = topology
         self.template_faces = anny_template(topology).faces
-        self.fitted = fitted or fit_template(self.vertices, self.faces, topology, **fit_options)
+        self.fitted, self.fit_cached = ((fitted, False) if fitted is not None
+                                        else cached_fit(self.vertices, self.faces, topology, **fit_options))
         self.template_on_mesh = closest_points(self.fitted.vertices, self.vertices, self.faces)
         self.template = self.to_template(self.vertices)
         self.mesh_on_template = closest_points(self.vertices, self.template, self.template_faces)

@@ -15,8 +15,13 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import functools
+import hashlib
+import importlib.metadata
 import itertools
+import os
+import zipfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import roma
@@ -24,6 +29,7 @@ import scipy.spatial
 import torch
 import trimesh
 
+from aniformer.io.files import atomic_path
 from aniformer.surface import GeodesicFrame, OrientedCloud, chamfer, geodesic_frame, nearest_pairs, normals
 from aniformer.transfer import mesh_edges
 
@@ -48,6 +54,7 @@ COARSE_PRUNE = (20, 24)
 REFINE_PRUNE = (60, 4)
 NEIGHBOURS_EVERY = 2  # Chamfer steps per nearest-neighbour search (the searches were a third of the fit's time)
 POSE_PRIOR = 1e-4  # per rad^2 of bone rotation: keeps unconstrained bones (fingers, face) at rest
+CACHE_ENV = "ANIFORMER_CACHE_DIR"  # where fits are kept (``fit_cache_dir``)
 
 
 def orientation_hypotheses() -> torch.Tensor:
@@ -324,6 +331,55 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
                                                         @ (fitted[:, :3, 3] + placed)[..., None])], -1)
     return BodyFit(((posed + offsets).detach()[0].numpy() + centre).astype(np.float32), height, float(fit.detach()),
                    to_rest.numpy())
+
+
+def fit_cache_dir() -> Path:
+    """Where ``cached_fit`` keeps fits: ``$ANIFORMER_CACHE_DIR``, else ``$XDG_CACHE_HOME/aniformer``, else
+    ``~/.cache/aniformer`` (beside Anny's own build cache, ``~/.cache/anny``)."""
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "aniformer"
+
+
+@functools.cache
+def _fit_code_version() -> bytes:
+    """A digest of everything a fit depends on besides its inputs: every source file of this package (so any
+    code change refits) and the versions of the libraries it runs on."""
+    digest = hashlib.sha256()
+    for source in sorted(Path(__file__).resolve().parent.rglob("*.py")):
+        digest.update(source.read_bytes())
+    for library in ("anny", "torch", "numpy", "scipy", "trimesh", "roma"):
+        digest.update(f"{library}=={importlib.metadata.version(library)};".encode())
+    return digest.digest()
+
+
+def _fit_key(vertices: np.ndarray, faces: np.ndarray, topology: str, options: dict) -> str:
+    digest = hashlib.sha256(_fit_code_version())
+    settings = {name: value for name, value in globals().items() if name.isupper()}  # as set now: a changed one refits
+    digest.update(repr(sorted(settings.items(), key=lambda item: item[0])).encode())
+    for part in (np.asarray(vertices, np.float32), np.asarray(faces, np.int64), topology,
+                 *(item for name in sorted(options) for item in (name, np.asarray(options[name])))):
+        array = np.ascontiguousarray(part) if isinstance(part, np.ndarray) else np.frombuffer(part.encode(), np.uint8)
+        digest.update(f"{array.dtype}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+def cached_fit(vertices: np.ndarray, faces: np.ndarray, topology: str, **options) -> tuple[BodyFit, bool]:
+    """``fit_template``'s fit of this mesh, loaded from ``fit_cache_dir`` if this code fitted the same mesh
+    (its vertices, faces, topology and ``options``) before, else fitted and kept there: (the fit, whether it
+    was loaded). The fit is deterministic, so a kept one is the same bytes a new fit would be; a character
+    animated with clip after clip is registered once (18 s at 18k vertices on 2 cores)."""
+    path = fit_cache_dir() / "registrations" / f"{_fit_key(vertices, faces, topology, options)}.npz"
+    try:
+        with np.load(path, allow_pickle=False) as kept:
+            return BodyFit(kept["vertices"], float(kept["height"]), float(kept["loss"]), kept["to_rest"]), True
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):  # none kept, or a damaged file: fit anew
+        pass
+    fit = fit_template(vertices, faces, topology, **options)
+    with contextlib.suppress(OSError), atomic_path(path) as tmp, open(tmp, "wb") as file:  # read-only, full: no harm
+        np.savez(file, vertices=fit.vertices, height=fit.height, loss=fit.loss, to_rest=fit.to_rest)
+    return fit, False
 
 
 def body_axis(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

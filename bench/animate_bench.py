@@ -5,6 +5,7 @@ Run from the repository root (minutes per checkout on 2 cores):
     python bench/animate_bench.py --out bench/results/animate_bench.json
     python bench/animate_bench.py --checkout before=/tmp/baseline --checkout after=.   # side by side
     python bench/animate_bench.py --targets 369 18k --frames 300 --rig   # also rigged.glb and motion.bvh
+    python bench/animate_bench.py --targets 18k --frames 300 --warm-fit   # the target's fit kept from a run before
 
 Inputs, made here and shared by every checkout so the runs differ only in code:
 - a driving clip on Anny's 369-vertex topology (``jumping_jacks``, 30 or 300 frames, OBJ files);
@@ -14,12 +15,15 @@ Inputs, made here and shared by every checkout so the runs differ only in code:
 
 Each run is one ``jobs/animate.py`` process (``--no-progress``), as a user starts it; its peak RSS is
 the process's ``ru_maxrss`` (``os.wait4``), its stage times the ``seconds`` of animation.json; with
-``--rig`` each row also has the sizes of animation.glb, rigged.glb and motion.bvh.
+``--rig`` each row also has the sizes of animation.glb, rigged.glb and motion.bvh. Every run registers
+afresh (an empty ``ANIFORMER_CACHE_DIR`` of its own), unless ``--warm-fit``: then each target is animated
+once untimed first, and the timed run loads that fit (``aniformer.registration.cached_fit``).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import subprocess
@@ -77,9 +81,10 @@ def make_inputs(root: Path, frames: int, targets: list[str]) -> dict[str, Path]:
     return paths
 
 
-def run_animate(checkout: Path, target: Path, clip: Path, out: Path, rig: bool = False) -> dict:
-    """One animate process: its animation.json's stage seconds, wall time and peak RSS (and output sizes)."""
-    env = {**os.environ, "PYTHONPATH": str(checkout)}  # the checkout's package, not the installed one
+def run_animate(checkout: Path, target: Path, clip: Path, out: Path, fit_cache: Path, rig: bool = False) -> dict:
+    """One animate process, registering with the fits kept in ``fit_cache``: its animation.json's stage seconds,
+    wall time and peak RSS (and output sizes)."""
+    env = {**os.environ, "PYTHONPATH": str(checkout), "ANIFORMER_CACHE_DIR": str(fit_cache)}  # the checkout's package
     command = [sys.executable, str(checkout / "jobs" / "animate.py"), "--target", str(target), "--driving", str(clip),
                "--out", str(out), "--overwrite", "--no-progress", *(["--rig"] if rig else [])]
     began = time.perf_counter()
@@ -104,6 +109,8 @@ def main() -> None:
     p.add_argument("--frames", nargs="+", type=int, default=list(CLIPS))
     p.add_argument("--inputs", type=Path, help="folder for the generated inputs (kept; default: a temp folder)")
     p.add_argument("--rig", action="store_true", help="animate with --rig, and report the output files' sizes")
+    p.add_argument("--warm-fit", action="store_true",
+                   help="time each target with its registration kept from an untimed run before (default: afresh)")
     p.add_argument("--out", type=Path, help="write the rows as JSON here")
     args = p.parse_args()
     checkouts = dict(c.split("=", 1) for c in args.checkout) or {"now": str(REPO)}
@@ -114,9 +121,13 @@ def main() -> None:
             inputs = make_inputs(root, frames, args.targets)
             for name in args.targets:
                 for label, checkout in checkouts.items():
-                    row = {"checkout": label, "target": name, "frames": frames,
-                           **run_animate(Path(checkout).resolve(), inputs[name], inputs["clip"],
-                                         Path(scratch) / "out", args.rig)}
+                    fit_cache = Path(tempfile.mkdtemp(prefix=f"fits-{label}-", dir=scratch))
+                    run = functools.partial(run_animate, Path(checkout).resolve(), inputs[name], inputs["clip"],
+                                            Path(scratch) / "out", fit_cache, args.rig)
+                    if args.warm_fit:
+                        run()
+                    row = {"checkout": label, "target": name, "frames": frames, "fit": "warm" if args.warm_fit else "cold",
+                           **run()}
                     row["fps_end_to_end"] = round(frames / row["wall_s"], 2)
                     print(json.dumps(row), flush=True)
                     rows.append(row)

@@ -20,6 +20,17 @@ ROOT = Path(__file__).resolve().parents[1]
 NODE = {"num_cpus": 1, "object_store_memory": 512 * 1024**2}  # each node of `ray_cluster`
 
 
+@pytest.fixture(scope="session", autouse=True)
+def fit_cache(tmp_path_factory) -> Path:
+    """The session's registrations are kept in a directory of its own (inherited by the Ray cluster and the
+    jobs it starts), not in the user's ``~/.cache/aniformer``; every session registers afresh."""
+    from aniformer.registration import CACHE_ENV
+
+    path = tmp_path_factory.mktemp("fits")
+    os.environ[CACHE_ENV] = str(path)
+    return path
+
+
 def pick_free_ports(n: int) -> list[int]:
     """n distinct free TCP ports between Ray's worker ports (10002-19999) and the kernel's ephemeral range:
     a port handed out by `bind(0)` could be taken by any process binding port 0 (Ray's gRPC servers and

@@ -77,11 +77,16 @@ def test_shipped_model_animates_targets_of_other_topologies_within_the_same_boun
         assert pmd[variant]["model"] < 1.5 * pmd["same"]["model"] + 1.0, pmd
 
 
-def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main, capsys):
+def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main, capsys, monkeypatch):
     """jobs/animate.py without --checkpoint or --up: a decimated body (its own topology) saved as a GLB
     in glTF's y-up axes, driven by a stream clip. It is read as y-up, registered in any orientation,
-    trusted by the self-check, and its frames are written in its own (y-up) axes, upright."""
+    trusted by the self-check, and its frames are written in its own (y-up) axes, upright. Animated
+    again, it loads the first run's fit and writes the same bytes."""
     import trimesh
+
+    from aniformer.registration import CACHE_ENV
+
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "fits"))
 
     from aniformer.cli.exits import run
     from aniformer.geometry import from_z_up
@@ -111,6 +116,57 @@ def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main,
     # the pose came from the driver: the result is far from the unmoved character in a squat
     squat = load_mesh(anim / "frames" / "frame_0003.obj")[0]
     assert np.abs(center_bbox(squat) - center_bbox(from_z_up(vertices, "y"))).max() > 0.05
+    assert not summary["registered"]["target"]["fit_cached"]
+    run(job_main("animate"), ["--target", str(tmp_path / "character.glb"), "--driving", str(samples / "driving"),
+                              "--out", str(tmp_path / "again"), "--no-progress", "--preview-frames", "0"])
+    assert "the fit of an earlier run" in capsys.readouterr().err
+    assert json.loads((tmp_path / "again" / "animation.json").read_text())["registered"]["target"]["fit_cached"]
+    for frame in sorted((anim / "frames").iterdir()):
+        assert (tmp_path / "again" / "frames" / frame.name).read_bytes() == frame.read_bytes()
+    assert (tmp_path / "again" / "animation.glb").read_bytes() == (anim / "animation.glb").read_bytes()
+
+
+def test_a_kept_fit_is_loaded_only_for_the_same_mesh_and_options(tmp_path, monkeypatch):
+    """``cached_fit`` fits a mesh once and loads that fit after (the same arrays); another mesh, other fit
+    options or a damaged file fit anew; a cache directory it cannot write to costs nothing but the keeping."""
+    from aniformer import registration
+    from aniformer.synth.stream import _body_model, pose_pairs
+
+    fitted = []
+
+    def counted(*args, **options):
+        fitted.append(options)
+        return fit_template(*args, **options)
+
+    fit_template = registration.fit_template
+    monkeypatch.setattr(registration, "fit_template", counted)
+    monkeypatch.setenv(registration.CACHE_ENV, str(tmp_path / "fits"))
+    body = _body_model(MODEL_TOPOLOGY)
+    vertices = pose_pairs(body, _stream_draws())[2][0, 0].astype(np.float32)
+    quick = {"steps": (2, 2, 2)}
+    first, loaded = registration.cached_fit(vertices, body.faces, MODEL_TOPOLOGY, **quick)
+    assert not loaded and len(fitted) == 1
+    again, loaded = registration.cached_fit(vertices.copy(), body.faces.copy(), MODEL_TOPOLOGY, **quick)
+    assert loaded and len(fitted) == 1
+    for field in ("vertices", "to_rest"):
+        kept, made = getattr(again, field), getattr(first, field)
+        assert kept.dtype == made.dtype and np.array_equal(kept, made)
+    assert (again.height, again.loss) == (first.height, first.loss)
+    moved = vertices.copy()
+    moved[0, 0] += 1e-4
+    assert not registration.cached_fit(moved, body.faces, MODEL_TOPOLOGY, **quick)[1]
+    assert not registration.cached_fit(vertices, body.faces, MODEL_TOPOLOGY, steps=(2, 2, 3))[1]
+    assert len(fitted) == 3
+    kept_files = sorted((tmp_path / "fits" / "registrations").iterdir())
+    assert len(kept_files) == 3 and all(f.suffix == ".npz" for f in kept_files)
+    for f in kept_files:
+        f.write_bytes(f.read_bytes()[:100])  # damaged: fitted anew, and kept whole again
+    assert not registration.cached_fit(vertices, body.faces, MODEL_TOPOLOGY, **quick)[1]
+    assert registration.cached_fit(vertices, body.faces, MODEL_TOPOLOGY, **quick)[1] and len(fitted) == 4
+    (tmp_path / "blocked").write_text("a file where the cache directory would be")
+    monkeypatch.setenv(registration.CACHE_ENV, str(tmp_path / "blocked"))
+    fit, loaded = registration.cached_fit(vertices, body.faces, MODEL_TOPOLOGY, **quick)
+    assert not loaded and np.array_equal(fit.vertices, first.vertices) and len(fitted) == 5
 
 
 def test_animate_refuses_a_mesh_that_is_not_a_body_unless_forced(tmp_path, job_main, capsys):

@@ -73,7 +73,7 @@ def test_a_library_is_one_job_each_foreign_mesh_registered_once_and_a_pair_equal
         library, ray_address, tmp_path, job_main, monkeypatch):
     """2 targets x 3 clips: every pair ok with animate's outputs, the decimated target and the shuffled clip
     registered exactly once each (the job's registration lines), the MLflow run logged; then anny x
-    shuffled_walk by jobs/animate.py alone gives the same frames, GLB and record."""
+    shuffled_walk by jobs/animate.py alone gives the same frames, GLB and record, with the job's kept fit."""
     out = tmp_path / "library_out"
     job = subprocess.run(retarget_command(library / "targets", library / "clips", out),
                          env=job_env(ray_address, tmp_path), capture_output=True, text=True, timeout=600)
@@ -114,6 +114,8 @@ def test_a_library_is_one_job_each_foreign_mesh_registered_once_and_a_pair_equal
         assert (alone / "frames" / name).read_bytes() == (pair / "frames" / name).read_bytes(), name
     assert (alone / "animation.glb").read_bytes() == (pair / "animation.glb").read_bytes()
     records = [json.loads((p / "animation.json").read_text()) for p in (alone, pair)]
+    # the job kept its fit of the clip (the session's fit cache), and animate alone loaded it
+    assert [r["registered"]["driver"].pop("fit_cached") for r in records] == [True, False]
     assert [{k: v for k, v in r.items() if k != "seconds"} for r in records] == [
         {k: v for k, v in records[0].items() if k != "seconds"}] * 2
 
@@ -168,13 +170,19 @@ def test_workers_killed_mid_job_cost_a_retry_not_the_pairs(library, ray_address,
     is registered once as far as the job is concerned."""
     import time
 
+    import trimesh
     from ray.util.state import list_actors, list_tasks
+
+    from aniformer.io.mesh import load_mesh
 
     targets, clips, out = tmp_path / "targets", tmp_path / "clips", tmp_path / "out"
     targets.mkdir()
     shutil.copy(library / "targets" / "anny.obj", targets)
-    for clip in ("walk", "shuffled_walk"):
-        shutil.copytree(library / "clips" / clip, clips / clip)
+    shutil.copytree(library / "clips" / "walk", clips / "walk")
+    (clips / "shuffled_walk").mkdir()
+    for frame in sorted((library / "clips" / "shuffled_walk").glob("*.obj")):
+        vertices, faces = load_mesh(frame)  # 1 mm aside: a clip no earlier job has a kept fit of, so it is registered
+        trimesh.Trimesh(vertices + [0.001, 0, 0], faces, process=False).export(clips / "shuffled_walk" / frame.name)
     job = subprocess.Popen(retarget_command(targets, clips, out), env=job_env(ray_address, tmp_path),
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     killed, deadline = set(), time.monotonic() + 60
