@@ -229,19 +229,19 @@ def infer(options: AnimateOptions, model, state: dict, driving, driving_faces, t
     return Inference(result, combine, total, input_center, registrations, trust, scale)
 
 
-def animate_files(options: AnimateOptions, out: Path, device, load_model: Callable[[], tuple]):
-    """jobs/animate.py's run: the inputs checked (before ``load_model()``: bad input fails before any work), the
-    driving frames loaded, `infer`, the result refused if the self-check does not trust it (unless ``--force``),
-    else written into ``out`` (`aniformer.animation_outputs.write_animation`). (Its animation.json record, the
-    self-check's ``Trust``, seconds of inference.)"""
+def animate_files(options: AnimateOptions, inputs: tuple, out: Path, device, load_model: Callable[[], tuple],
+                  start: float):
+    """jobs/animate.py's run from its checked ``inputs`` (`load_inputs`, begun at ``start``, a ``perf_counter``
+    time): ``load_model()``, the driving frames loaded, `infer`, the result refused if the self-check does not
+    trust it (unless ``--force``), else written into ``out`` (`aniformer.animation_outputs.write_animation`).
+    (Its animation.json record, the self-check's ``Trust``, seconds of inference.)"""
     from tqdm import tqdm
 
     from aniformer.animate import load_driving
     from aniformer.animation_outputs import write_animation  # it imports this module
     from aniformer.geometry import to_z_up
 
-    start = time.perf_counter()
-    files, target, target_faces, fps, name = load_inputs(options)
+    files, target, target_faces, fps, name = inputs
     model, state = load_model()
     with tqdm(total=len(files), unit="frame", desc="load driving", disable=options.no_progress,
               file=sys.stderr) as bar:

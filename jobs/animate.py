@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 from aniformer.animate import FPS_SIDECARS
-from aniformer.animation_run import AnimateOptions, animate_files, check_flags
+from aniformer.animation_run import AnimateOptions, animate_files, check_flags, load_inputs
 from aniformer.cli.args import ArgumentParser, options_from, resolve_device
 from aniformer.cli.exits import run
 from aniformer.cli.locks import releases_locks
@@ -126,13 +126,15 @@ def main(argv: list[str]) -> None:
     options = options_from(AnimateOptions, args)
     check_flags(options)
     out = Path(args.out).expanduser().resolve()
-    from aniformer.checkpoint import resolve_pretrained  # torch: after the arguments are checked
+    start = time.perf_counter()
+    inputs = load_inputs(options)  # a missing or bad target or clip is refused before torch's seconds of imports
+    from aniformer.checkpoint import resolve_pretrained
 
     checkpoint = resolve_pretrained(args.checkpoint)
     claim_output(out, args.overwrite, {"--checkpoint": checkpoint, "--target": args.target, "--driving": args.driving})
     device = resolve_device(args.device)
-    start = time.perf_counter()
-    summary, trust, inference = animate_files(options, out, device, functools.partial(load_model, checkpoint))
+    summary, trust, inference = animate_files(options, inputs, out, device, functools.partial(load_model, checkpoint),
+                                              start)
     seconds = time.perf_counter() - start
     frames, fps = summary["frames"], summary["fps"]
     worst = max(trust.checks, key=lambda c: c.value / c.limit)

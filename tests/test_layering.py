@@ -35,14 +35,28 @@ def test_import_contracts_are_kept():
 
 # Jobs whose --help loads no heavy library (seconds of start-up each); evaluate's pulls in the pipeline.
 LIGHT_HELP_JOBS = ("ablate", "animate", "export_meshes", "generate_data", "retarget", "sweep", "train")
-LOADED_AFTER_HELP = ("import runpy, sys; sys.argv = [sys.argv[1], '--help']\n"
-                     "try:\n    runpy.run_path(sys.argv[0], run_name='__main__')\nexcept SystemExit:\n    pass\n"
-                     "print('loaded:', *(m for m in ('torch', 'trimesh', 'ray', 'mlflow') if m in sys.modules))")
+LOADED_AFTER = ("import runpy, sys; sys.argv = sys.argv[1:]\n"
+                "try:\n    runpy.run_path(sys.argv[0], run_name='__main__')\nexcept SystemExit:\n    pass\n"
+                "print('loaded:', *(m for m in ('torch', 'trimesh', 'ray', 'mlflow') if m in sys.modules))")
 
 
 @pytest.mark.parametrize("job", LIGHT_HELP_JOBS)
 def test_a_jobs_help_loads_no_heavy_library(job):
-    done = subprocess.run([sys.executable, "-c", LOADED_AFTER_HELP, f"jobs/{job}.py"], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)
+    done = subprocess.run([sys.executable, "-c", LOADED_AFTER, f"jobs/{job}.py", "--help"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
     assert "usage:" in done.stdout, done.stderr
     assert done.stdout.rsplit("loaded:", 1)[1].split() == [], f"--help of jobs/{job}.py loaded those"
+
+
+@pytest.mark.parametrize("missing", ["--target", "--driving"])
+def test_animate_refuses_a_missing_input_before_loading_torch(missing, tmp_path):
+    """A mistyped path is answered at once (one line, exit 2), not after seconds of imports."""
+    (tmp_path / "clip").mkdir()
+    (tmp_path / "clip" / "frame_0000.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    given = {"--target": str(tmp_path / "clip" / "frame_0000.obj"), "--driving": str(tmp_path / "clip")}
+    given[missing] = str(tmp_path / "nope.obj")
+    argv = ["jobs/animate.py", *(item for flag in given for item in (flag, given[flag])), "--out", str(tmp_path / "out")]
+    done = subprocess.run([sys.executable, "-c", LOADED_AFTER, *argv], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120)
+    assert done.stderr.startswith("error: ") and "nope.obj: no such" in done.stderr, done.stderr
+    assert done.stdout.rsplit("loaded:", 1)[1].split() == [] and not (tmp_path / "out").exists()
