@@ -84,15 +84,13 @@ def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main,
     again, it loads the first run's fit and writes the same bytes."""
     import trimesh
 
-    from aniformer.registration import CACHE_ENV
-
-    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "fits"))
-
     from aniformer.cli.exits import run
     from aniformer.geometry import from_z_up
     from aniformer.io.mesh import load_mesh
+    from aniformer.registration import CACHE_ENV
     from aniformer.synth.variants import remesh
 
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "fits"))  # the first run fits: no earlier test kept this mesh's fit
     samples, anim = tmp_path / "clip", tmp_path / "anim"
     run(job_main("export_meshes"), ["--stream", MODEL_TOPOLOGY, "--split", "crouch", "--frames", "6",
                                     "--out", str(samples)])
