@@ -87,7 +87,7 @@ def render_animation_gif(
     panel_px: int = 240,
     view: tuple[float, float] = (10.0, -60.0),
     progress=None,
-    max_faces: int = 5_000,
+    max_faces: int = 2_500,
 ) -> Path:
     """An animated GIF of ``panels`` of (label, vertices (N, V, 3), faces) side by side (e.g. driver | result).
 
@@ -96,7 +96,7 @@ def render_animation_gif(
     the preview keeps real time. Each panel keeps one set of axes limits over the whole sequence.
     ``progress(1)`` is called after every drawn frame. Meshes with more than ``max_faces`` faces
     are drawn decimated to that many (``preview_mesh``): matplotlib draws ~10^4-10^5 polygons per
-    second, and a 240-pixel panel shows no more.
+    second, and a 240-pixel panel shows no more (a body ~200 pixels tall: a face is a few pixels).
     Written to a temporary name, then renamed.
     """
     path = Path(path)
