@@ -14,8 +14,6 @@ from pathlib import Path
 from aniformer.cli.outputs import staged_output_dir
 from aniformer.errors import UserError
 from pipeline.evaluation_data import EvalData, choose_data
-from pipeline.registry import resolve_checkpoint
-from pipeline.tracking import RUN_ID, quiet_mlflow
 
 
 @dataclass(frozen=True)
@@ -120,6 +118,8 @@ def _model_label(state: dict, model) -> str:
 def _default_name(reference: str) -> str:
     if reference.startswith("models:/"):  # a registered model: models:/aniformer/3 -> aniformer-3
         return re.sub(r"[/@]", "-", reference.removeprefix("models:/").rstrip("/"))
+    from pipeline.tracking import RUN_ID
+
     match = RUN_ID.fullmatch(reference)
     if match and not Path(reference).exists():
         return match.group(1)[:8]
@@ -202,6 +202,7 @@ def write_results(out: Path, options: EvaluateOptions, markdown: str, result: di
 def load_models(checkpoint: str, compare: list) -> tuple[Path, object, dict, list]:
     """(the checkpoint's path, its model, its state, the --compare rows (label, model))."""
     from aniformer.checkpoint import model_from_checkpoint
+    from pipeline.registry import resolve_checkpoint
 
     with tempfile.TemporaryDirectory(prefix="aniformer-eval-") as scratch:
         ckpt_path = resolve_checkpoint(checkpoint, Path(scratch))
@@ -263,8 +264,9 @@ def score(options: EvaluateOptions, rows, contenders, data: EvalData, levels, de
 
 def _log_to_mlflow(job: str, options: EvaluateOptions, out: Path, files: Path, table, sweep, pairs, seed, splits, config,
                    acceleration=None) -> str:
+    from pipeline.tracking import RUN_ID, quiet_mlflow, start_job_run
+
     quiet_mlflow()
-    from pipeline.tracking import start_job_run
 
     params = {"evaluate": {"checkpoint": options.checkpoint, "bank": str(options.bank or ""),
                            "topology": options.topology or "", "pairs": pairs, "seed": seed, "splits": splits,

@@ -33,8 +33,8 @@ def test_import_contracts_are_kept():
         assert f"{contract['name']} KEPT" in output, f"{contract['name']!r} not reported kept:\n{output}"
 
 
-# Jobs whose --help loads no heavy library (seconds of start-up each); evaluate's pulls in the pipeline.
-LIGHT_HELP_JOBS = ("ablate", "animate", "export_meshes", "generate_data", "retarget", "sweep", "train")
+# Every job's --help loads no heavy library (seconds of start-up each).
+LIGHT_HELP_JOBS = ("ablate", "animate", "evaluate", "export_meshes", "generate_data", "retarget", "sweep", "train")
 LOADED_AFTER = ("import runpy, sys; sys.argv = sys.argv[1:]\n"
                 "try:\n    runpy.run_path(sys.argv[0], run_name='__main__')\nexcept SystemExit:\n    pass\n"
                 "print('loaded:', *(m for m in ('torch', 'trimesh', 'ray', 'mlflow') if m in sys.modules))")
