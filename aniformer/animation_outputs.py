@@ -5,13 +5,19 @@ motion.bvh, staged into the output directory (`write_animation`, for jobs/animat
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 from aniformer.animation_run import AnimateOptions, Inference, anny_topology, timed
 from aniformer.cli.outputs import staged_output_dir
 from aniformer.io.mesh import UNITS
+
+# vertex-frames from which the OBJs get a writer process: below, its start (~0.3 s of a core) outweighs the overlap
+OBJ_PROCESS_VERTEX_FRAMES = 1_000_000
 
 
 def rig_inputs(options: AnimateOptions, state: dict, target, target_faces, registrations: dict):
@@ -45,52 +51,93 @@ def write_rig(tmp: Path, options: AnimateOptions, summary: dict, target, target_
     summary["rig"] = {"joints": len(rig.names), "residual_m": round(motion.residual, 6)}
 
 
+def objs_in_a_process(frames: int, vertices: int) -> bool:
+    """Whether a clip's OBJs are worth a writer process: big enough, and a second CPU for it."""
+    return frames * vertices >= OBJ_PROCESS_VERTEX_FRAMES and len(os.sched_getaffinity(0)) > 1
+
+
+@contextlib.contextmanager
+def objs_written_beside(folder: Path, frames, faces, in_process: bool, seconds: dict, bar) -> Iterator[None]:
+    """frame_NNNN.obj of ``frames`` in ``folder``, written while the block writes the other outputs: in a process of
+    its own when ``in_process`` (their text is built under the GIL, so a thread would not overlap), else here first.
+    ``seconds["write OBJ"]`` is what the OBJs cost this process: the writing, or saving the frames for the writer
+    and waiting for it after the block. A failure in either ends both."""
+    import multiprocessing
+
+    import numpy as np
+
+    from aniformer.io.mesh import write_obj_frames
+
+    folder.mkdir()
+    if not in_process:
+        with timed(seconds, "write OBJ"):
+            write_obj_frames(folder, frames, faces, progress=bar.update)
+        yield
+        return
+    handoff = folder.parent / ".frames.npy"  # the staging directory's: read memory-mapped by the writer
+    with timed(seconds, "write OBJ"):
+        np.save(handoff, np.asarray(frames))
+    writer = multiprocessing.get_context("spawn").Pool(1)  # spawn: this process holds torch's threads
+    try:
+        written = writer.apply_async(write_obj_frames, (folder, handoff, np.asarray(faces)))
+        yield
+        with timed(seconds, "write OBJ"):
+            while not written.ready():
+                written.wait(0.2)
+                bar.update(sum(1 for name in os.listdir(folder) if name.startswith("frame_")) - bar.n)
+            written.get()  # the writer's exception, if it raised
+        bar.update(bar.total - bar.n)
+    finally:
+        writer.terminate()
+        writer.join()
+        handoff.unlink(missing_ok=True)
+
+
 def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, driving_faces, local, translation,
-                  target, target_faces, rig_source) -> None:
+                  target, target_faces, rig_source, objs_process: bool = False) -> None:
     """frames/*.obj, animation.glb, preview.gif, animation.json and with ``--rig`` rigged.glb and motion.bvh (of
     ``rig_source``: ``rig_inputs``), staged: `out` appears complete or not at all. Each one's time goes into
-    ``summary["seconds"]``."""
+    ``summary["seconds"]``. ``objs_process``: the OBJs may be written by a process of their own
+    (`objs_in_a_process`), beside the rest."""
     from tqdm import tqdm
 
     from aniformer.geometry import center_bbox, from_z_up
     from aniformer.io.glb import write_glb
-    from aniformer.io.mesh import write_obj
 
     seconds = summary["seconds"]
     world = local if translation is None else local + translation[:, None]
     fps, name = summary["fps"], summary["name"]
+    in_process = objs_process and objs_in_a_process(len(local), len(target))
     with staged_output_dir(out, options.overwrite) as tmp:
-        digits = max(4, len(str(len(local) - 1)))
-        (tmp / "frames").mkdir()
-        in_target_axes = from_z_up(world, summary["up"]["target"]["axis"]) / UNITS[options.unit]
-        with timed(seconds, "write OBJ"):
-            for k, vertices in enumerate(tqdm(in_target_axes, unit="obj", desc="write OBJ",
-                                              disable=options.no_progress, file=sys.stderr)):
-                write_obj(tmp / "frames" / f"frame_{k:0{digits}d}.obj", vertices, target_faces)
-        if not options.no_glb:
-            with timed(seconds, "write GLB"):
-                write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
-                          frames_per_mesh=options.frames_per_mesh,
-                          extras={"checkpoint": str(options.checkpoint), "driving": str(options.driving)})
-        if options.rig:
-            with timed(seconds, "rig"):
-                write_rig(tmp, options, summary, target, target_faces, world, rig_source)
-        if options.preview_frames:
-            from aniformer.io.render import render_animation_gif
+        with tqdm(total=len(local), unit="obj", desc="write OBJ", disable=options.no_progress,
+                  file=sys.stderr) as obj_bar, \
+                objs_written_beside(tmp / "frames", from_z_up(world, summary["up"]["target"]["axis"]) / UNITS[options.unit],
+                                    target_faces, in_process, seconds, obj_bar):
+            if not options.no_glb:
+                with timed(seconds, "write GLB"):
+                    write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
+                              frames_per_mesh=options.frames_per_mesh,
+                              extras={"checkpoint": str(options.checkpoint), "driving": str(options.driving)})
+            if options.rig:
+                with timed(seconds, "rig"):
+                    write_rig(tmp, options, summary, target, target_faces, world, rig_source)
+            if options.preview_frames:
+                from aniformer.io.render import render_animation_gif
 
-            shown = center_bbox(driving) if options.center else driving
-            with tqdm(total=min(options.preview_frames, len(local)), unit="frame", desc="preview",
-                      disable=options.no_progress, file=sys.stderr) as bar, timed(seconds, "preview"):
-                render_animation_gif([("driver", shown, driving_faces), ("result", world, target_faces)],
-                                     tmp / "preview.gif", fps=fps, max_frames=options.preview_frames,
-                                     progress=bar.update)
+                shown = center_bbox(driving) if options.center else driving
+                with tqdm(total=min(options.preview_frames, len(local)), unit="frame", desc="preview",
+                          disable=options.no_progress, file=sys.stderr) as bar, timed(seconds, "preview"):
+                    render_animation_gif([("driver", shown, driving_faces), ("result", world, target_faces)],
+                                         tmp / "preview.gif", fps=fps, max_frames=options.preview_frames,
+                                         progress=bar.update)
         (tmp / "animation.json").write_text(json.dumps(summary, indent=2) + "\n")
 
 
 def write_animation(out: Path, options: AnimateOptions, state: dict, window: int, name: str, fps: float, driving,
-                    driving_faces, target, target_faces, axes: dict, inference: Inference, seconds: dict) -> dict:
+                    driving_faces, target, target_faces, axes: dict, inference: Inference, seconds: dict,
+                    objs_process: bool = False) -> dict:
     """Place the inferred frames in the world, then `write_outputs` into
-    ``out`` with their animation.json record (returned)."""
+    ``out`` with their animation.json record (returned); ``objs_process``: see `write_outputs`."""
     from aniformer.animate import root_motion
     from aniformer.geometry import center_bbox
 
@@ -113,5 +160,6 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, window: int
         "seconds": seconds,
     }
     rig_source = rig_inputs(options, state, target, target_faces, registrations) if options.rig else None
-    write_outputs(out, options, summary, driving, driving_faces, local, translation, target, target_faces, rig_source)
+    write_outputs(out, options, summary, driving, driving_faces, local, translation, target, target_faces, rig_source,
+                  objs_process)
     return summary

@@ -259,5 +259,5 @@ def animate_files(options: AnimateOptions, inputs: tuple, out: Path, device, loa
     inferred = time.perf_counter()
     seconds["inference"] = round(inferred - loaded, 3)
     summary = write_animation(out, options, state, model.config.window, name, fps, driving, driving_faces, target,
-                              target_faces, axes, inference, seconds)
+                              target_faces, axes, inference, seconds, objs_process=True)
     return summary, trust, inferred - loaded

@@ -8,6 +8,7 @@ tests/js``, which .ci/run does); without node or Chromium those checks are skipp
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import html
 import http.server
@@ -380,6 +381,33 @@ def test_write_obj_numbers_match_printf_byte_for_byte(tmp_path):
         assert text == b"# aniformer\n" + expected.encode() + b"f 1 1 1\n"
 
 
+@pytest.mark.parametrize("block_raises", [False, True])
+def test_objs_written_by_a_process_are_the_ones_written_here(tmp_path, block_raises):
+    from tqdm import tqdm
+
+    from aniformer.animation_outputs import objs_written_beside
+
+    vertices, faces = body(2)
+    frames = vertices[None] + np.linspace(0, 0.3, 12)[:, None, None] * np.array([1.0, -0.5, 0.2])
+    here, beside = tmp_path / "here", tmp_path / "staged"
+    here.mkdir(), beside.mkdir()
+    with tqdm(total=12, disable=True) as bar, objs_written_beside(here / "frames", frames, faces, False, {}, bar):
+        pass
+    seconds = {}
+    with contextlib.suppress(RuntimeError), tqdm(total=12, disable=True) as bar, \
+            objs_written_beside(beside / "frames", frames, faces, True, seconds, bar):
+        assert (beside / ".frames.npy").is_file()  # the writer's input, beside the frames
+        if block_raises:  # e.g. the GLB failed: the writer is ended, its input removed
+            raise RuntimeError("the other outputs failed")
+    assert [p.name for p in beside.iterdir()] == ["frames"]
+    if not block_raises:
+        assert sorted(p.name for p in (beside / "frames").iterdir()) == [f"frame_{k:04d}.obj" for k in range(12)]
+        for k in (0, 11):
+            assert (beside / "frames" / f"frame_{k:04d}.obj").read_bytes() == \
+                (here / "frames" / f"frame_{k:04d}.obj").read_bytes()
+        assert seconds["write OBJ"] >= 0
+
+
 def test_preview_mesh_decimates_every_frame_alike():
     from aniformer.io.render import preview_mesh
 
@@ -414,7 +442,8 @@ def inputs(tmp_path_factory) -> dict:
 
 
 @pytest.mark.slow
-def test_animate_job_end_to_end(inputs, tmp_path, capsys):
+def test_animate_job_end_to_end(inputs, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("aniformer.animation_outputs.OBJ_PROCESS_VERTEX_FRAMES", 1)  # a clip as big as a studio's
     out = tmp_path / "anim"
     animate_main(["--checkpoint", inputs["checkpoint"], "--target", inputs["target"], "--driving", inputs["driving"],
                   "--out", out, "--fps", 25, "--no-progress", "--batch-size", 14, "--force"])  # untrained: it tears

@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -150,6 +151,19 @@ def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
     with atomic_path(path) as tmp, open(tmp, "wb") as file:
         file.writelines((b"# aniformer\n", vertex_lines, _face_lines(faces.tobytes())))
     return Path(path)
+
+
+def write_obj_frames(folder: Path, frames: np.ndarray | str | os.PathLike, faces: np.ndarray,
+                     progress: Callable[[int], object] | None = None) -> None:
+    """frame_NNNN.obj (at least four digits) in ``folder`` for each of ``frames (T, V, 3)``, by `write_obj`;
+    ``frames`` may be the path of a .npy file of them, read memory-mapped (a writer process's input)."""
+    if not isinstance(frames, np.ndarray):
+        frames = np.load(frames, mmap_mode="r")
+    digits = max(4, len(str(len(frames) - 1)))
+    for k, vertices in enumerate(frames):
+        write_obj(Path(folder) / f"frame_{k:0{digits}d}.obj", vertices, faces)
+        if progress is not None:
+            progress(1)
 
 
 def _vertex_lines(x: np.ndarray) -> bytes:
