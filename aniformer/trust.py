@@ -117,18 +117,27 @@ def registration_checks(correspondence, role: str = "") -> list[Check]:
             Check("part flipped", float(part_flipped[turned]), LIMITS["part flipped"], f"{role} {names[turned]}".strip())]
 
 
-def stretch_check(frames: np.ndarray, rest: np.ndarray, faces: np.ndarray, what: str = "result") -> Check:
+def stretch_check(frames: np.ndarray, rest: np.ndarray, faces: np.ndarray, what: str = "result",
+                  chunk: int = 32) -> Check:
     """``stretch`` of ``frames (T, N, 3)`` against ``rest (N, 3)`` of one mesh: the worst frame's share of
-    edge length beyond ``STRETCH_FACTOR`` either way."""
-    i, j = mesh_edges(np.asarray(faces, np.int64), rest.shape[0])
+    edge length beyond ``STRETCH_FACTOR`` either way (``chunk`` frames at a time)."""
+    import torch
+
+    i, j = (torch.from_numpy(e) for e in mesh_edges(np.asarray(faces, np.int64), rest.shape[0]))
     rest_length = np.linalg.norm(rest[i] - rest[j], axis=1) + 1e-9
-    worst, worst_frame = 0.0, 0
-    for t, frame in enumerate(frames):
-        ratio = (np.linalg.norm(frame[i] - frame[j], axis=1) + 1e-9) / rest_length
-        share = float(rest_length[(ratio > STRETCH_FACTOR) | (ratio < 1 / STRETCH_FACTOR)].sum() / rest_length.sum())
-        if share > worst:
-            worst, worst_frame = share, t
-    return Check("stretch", worst, LIMITS["stretch"], f"{what}, frame {worst_frame}")
+    # squared lengths against squared bounds, in torch: 0.65 -> 0.3 s for 300 frames of 18k vertices
+    longest = torch.from_numpy((STRETCH_FACTOR * rest_length) ** 2).float()
+    shortest = torch.from_numpy((rest_length / STRETCH_FACTOR) ** 2).float()
+    share_of_length = torch.from_numpy(rest_length / rest_length.sum()).double()
+    shares = []
+    for lo in range(0, len(frames), chunk):
+        batch = torch.from_numpy(np.ascontiguousarray(frames[lo : lo + chunk], np.float32))
+        edge = (batch.index_select(1, i) - batch.index_select(1, j)).square()
+        squared = edge[..., 0] + edge[..., 1] + edge[..., 2]  # a sum over the last axis of 3 is slow in torch
+        shares.append(((squared > longest) | (squared < shortest)).double() @ share_of_length)
+    shares = torch.cat(shares)
+    worst = int(shares.argmax())
+    return Check("stretch", float(shares[worst]), LIMITS["stretch"], f"{what}, frame {worst}")
 
 
 @dataclass(frozen=True)

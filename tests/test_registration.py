@@ -224,6 +224,23 @@ def test_self_check_trusts_a_good_registration_and_refuses_injected_failures(str
             np.testing.assert_allclose(broken.unposed(broken.vertices), rest, atol=1e-5)
 
 
+def test_stretch_is_the_worst_frames_share_of_edge_length_torn_or_squashed():
+    from aniformer.trust import STRETCH_FACTOR, stretch_check
+
+    rest = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 4]], np.float32)  # edges 1, 2, 4, sqrt 5, sqrt 17, sqrt 20
+    faces = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])
+    frames = np.repeat(rest[None], 7, 0)
+    frames[2, 1, 0] = 1.01 * STRETCH_FACTOR  # frame 2: edge 0-1 just past 3x, the others within it
+    frames[5, 3, 2] = 4 / (1.01 * STRETCH_FACTOR)  # frame 5: edge 0-3 squashed just past 3x
+    frames[6, 1, 0] = 0.99 * STRETCH_FACTOR  # frame 6: edge 0-1 just within 3x
+    total = 1 + 2 + 4 + 5**0.5 + 17**0.5 + 20**0.5
+    for chunk in (2, 32):  # frames in several chunks, and in one
+        check = stretch_check(frames, rest, faces, chunk=chunk)
+        assert check.value == pytest.approx(4 / total, rel=1e-6) and check.where == "result, frame 5"
+        assert stretch_check(frames[:3], rest, faces, chunk=chunk).value == pytest.approx(1 / total, rel=1e-6)
+        assert stretch_check(frames[6:], rest, faces, chunk=chunk).value == 0
+
+
 def test_up_axis_is_the_one_the_body_stands_along():
     """detect_up: a standing body says z, the same body in y-up axes says y, a body lying along x keeps the
     format's convention."""
