@@ -74,7 +74,7 @@ def write_rigged_glb(path: str | os.PathLike, vertices: np.ndarray, faces: np.nd
     gltf = gltf_document(buf, animation, nodes, [mesh], name, fps, extras)
     gltf["scenes"][0]["nodes"] = [0, 1]
     gltf["skins"] = [skin]
-    return write_glb_file(Path(path), gltf, b"".join(buf.blobs))
+    return write_glb_file(Path(path), gltf, buf.blobs)
 
 
 def _quaternions(rotations: np.ndarray) -> np.ndarray:
