@@ -27,6 +27,7 @@ import numpy as np
 import roma
 import torch
 
+from aniformer.geometry import frames_per_chunk
 from aniformer.registration import BodyFit, anny_template, cached_fit
 from aniformer.surface import closest_points
 from aniformer.transfer import vertex_rotations
@@ -63,10 +64,11 @@ class Correspondence:
         """Frames ``(..., N, 3)`` of the mesh's topology as ``(..., V_a, 3)`` on Anny's."""
         return self.template_on_mesh.on(frames, self.faces)
 
-    def from_template(self, posed: np.ndarray, chunk: int = 32) -> np.ndarray:
+    def from_template(self, posed: np.ndarray) -> np.ndarray:
         """The mesh in the poses of ``posed (T, V_a, 3)`` (the template moved) -> ``(T, N, 3)`` float32: each
         vertex rides its template point, its offset from it turned by the template's local rotation there,
-        the weighted rotation mean of its face's corners (``chunk`` frames at a time)."""
+        the weighted rotation mean of its face's corners (a few frames at a time: `frames_per_chunk`)."""
+        chunk = frames_per_chunk(len(self.vertices))
         rest = torch.from_numpy(self.template.astype(np.float64))
         corner_index = torch.from_numpy(self.template_faces[self.mesh_on_template.face])  # (N, 3)
         weights = torch.from_numpy(self.mesh_on_template.weights).float()

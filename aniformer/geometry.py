@@ -7,6 +7,14 @@ from __future__ import annotations
 import numpy as np
 
 UP_AXES = ("z", "y")  # the axis a file's bodies stand along: z (Anny, Blender's scene) or y (glTF, OBJ exports)
+# vertex-frames per step of the per-frame work over a whole clip (carry-back, stretch): its temporaries stay in the
+# cache; 300 frames of 72k vertices carried back in 5.4 s at 262k per step, 9.8 s at 32 frames (2.3M)
+CHUNK_VERTEX_FRAMES = 2**18
+
+
+def frames_per_chunk(vertices: int) -> int:
+    """How many frames of a ``vertices``-vertex mesh to take at a time (``CHUNK_VERTEX_FRAMES``)."""
+    return max(1, CHUNK_VERTEX_FRAMES // max(1, vertices))
 
 
 def to_z_up(vertices: np.ndarray, up: str) -> np.ndarray:
