@@ -108,11 +108,13 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
     world = local if translation is None else local + translation[:, None]
     fps, name = summary["fps"], summary["name"]
     in_process = objs_process and objs_in_a_process(len(local), len(target))
+    in_target_axes = from_z_up(world, summary["up"]["target"]["axis"])
+    if UNITS[options.unit] != 1:  # metres are written as they are: no copy of the clip
+        in_target_axes = in_target_axes / UNITS[options.unit]
     with staged_output_dir(out, options.overwrite) as tmp:
         with tqdm(total=len(local), unit="obj", desc="write OBJ", disable=options.no_progress,
                   file=sys.stderr) as obj_bar, \
-                objs_written_beside(tmp / "frames", from_z_up(world, summary["up"]["target"]["axis"]) / UNITS[options.unit],
-                                    target_faces, in_process, seconds, obj_bar):
+                objs_written_beside(tmp / "frames", in_target_axes, target_faces, in_process, seconds, obj_bar):
             if not options.no_glb:
                 with timed(seconds, "write GLB"):
                     write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,

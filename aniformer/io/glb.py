@@ -99,8 +99,9 @@ class GlbBuffer:
 
 
 def _mesh_and_weights(buf: GlbBuffer, frames: np.ndarray, indices: int, name: str) -> tuple[dict, int | None]:
-    """A mesh whose base is ``frames[0]`` with one morph target per later frame, and its weights output."""
-    base, deltas = frames[0], frames[1:] - frames[0]
+    """A mesh whose base is ``frames[0]`` with one morph target per later frame (z up, written in glTF's axes), and
+    its weights output."""
+    base, deltas = to_gltf_axes(frames[0]), to_gltf_axes(frames[1:] - frames[0])
     position = buf.accessor(buf.view(base, ARRAY_BUFFER), "VEC3", len(base), bounds=base)
     primitive = {"attributes": {"POSITION": position}, "indices": indices, "mode": 4, "material": 0}
     mesh = {"name": name, "primitives": [primitive]}
@@ -139,7 +140,7 @@ def write_glb(path: str | os.PathLike, frames: np.ndarray, faces: np.ndarray, fp
     (root motion). Every channel is STEP with keys k / fps and one end key at N / fps, so the clip
     lasts N / fps. See docs/animate.md for the layout.
     """
-    frames = to_gltf_axes(checked_frames(frames, fps))
+    frames = checked_frames(frames, fps)  # turned to glTF's axes mesh by mesh (`_mesh_and_weights`): no copy of the clip
     faces = np.ascontiguousarray(faces, np.uint32)
     buf = GlbBuffer()
     indices = buf.accessor(buf.view(faces.ravel(), ELEMENT_ARRAY_BUFFER), "SCALAR", faces.size, UINT,
