@@ -42,7 +42,7 @@ from aniformer.cli.exits import run
 from aniformer.errors import MeshError, UserError
 from aniformer.geometry import center_bbox
 from aniformer.io.files import natural_key
-from aniformer.io.glb import MAX_MORPH_TARGETS, mesh_chunks, read_glb, to_gltf_axes, write_glb
+from aniformer.io.glb import MAX_MORPH_TARGETS, mesh_chunks, read_document, read_glb, to_gltf_axes, write_glb
 from aniformer.io.mesh import write_obj
 from aniformer.model import AniFormer, AniFormerConfig
 
@@ -304,6 +304,11 @@ def test_glb_round_trip_and_layout(tmp_path):
     weights = gltf["accessors"][samplers[0]["output"]]
     assert "sparse" in weights and weights["sparse"]["count"] == 12 and "bufferView" not in weights  # linear in N
     assert path.stat().st_size % 4 == 0
+    _, accessor = read_document(path)
+    for k in (1, 11):  # each target is its frame minus the base in glTF's axes, bit for bit (a still vertex's +0)
+        expected = to_gltf_axes(seq[k]) - to_gltf_axes(seq[0])
+        assert (expected == 0).any() and np.array_equal(accessor(primitive["targets"][k - 1]["POSITION"]).view(np.uint32),
+                                                        expected.view(np.uint32))
 
 
 def test_glb_chunks_a_long_clip_into_meshes_of_at_most_frames_per_mesh(tmp_path):

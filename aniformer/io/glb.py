@@ -101,7 +101,9 @@ class GlbBuffer:
 def _mesh_and_weights(buf: GlbBuffer, frames: np.ndarray, indices: int, name: str) -> tuple[dict, int | None]:
     """A mesh whose base is ``frames[0]`` with one morph target per later frame (z up, written in glTF's axes), and
     its weights output."""
-    base, deltas = to_gltf_axes(frames[0]), to_gltf_axes(frames[1:] - frames[0])
+    base, deltas = to_gltf_axes(frames[0]), frames[1:] - frames[0]
+    deltas[..., 1] = deltas[..., 2]  # to_gltf_axes in place, (x, y, z) -> (x, z, -y): no second copy of the clip
+    np.subtract(frames[0, :, 1], frames[1:, :, 1], out=deltas[..., 2])  # -y as (-y1) - (-y0): a still vertex's is +0
     position = buf.accessor(buf.view(base, ARRAY_BUFFER), "VEC3", len(base), bounds=base)
     primitive = {"attributes": {"POSITION": position}, "indices": indices, "mode": 4, "material": 0}
     mesh = {"name": name, "primitives": [primitive]}
