@@ -141,9 +141,8 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, window: int
     """Place the inferred frames in the world, then `write_outputs` into
     ``out`` with their animation.json record (returned); ``objs_process``: see `write_outputs`."""
     from aniformer.animate import root_motion
-    from aniformer.geometry import center_bbox
 
-    local = center_bbox(inference.frames)
+    local = inference.frames
     translation = None if options.center else root_motion(driving, local, inference.scale)
     registrations = inference.registrations
     summary = {

@@ -184,7 +184,7 @@ def _report_fit(role: str, fit, template, seconds: float) -> None:
 class Inference:
     """What `infer` made: the target's animated frames, and how they were made."""
 
-    frames: object  # (frames, V, 3) the target animated, z up, centred per frame as the model's input was
+    frames: object  # (frames, V, 3) the target animated, z up, bounding-box centred per frame
     combine: str  # how overlapping windows' frames were combined
     windows: int
     input_center: str
@@ -202,6 +202,7 @@ def infer(options: AnimateOptions, model, state: dict, driving, driving_faces, t
     from tqdm import tqdm
 
     from aniformer.animate import animate_sequence, body_scale, num_windows
+    from aniformer.geometry import center_bbox
     from aniformer.trust import animation_trust
 
     config = model.config
@@ -226,6 +227,7 @@ def infer(options: AnimateOptions, model, state: dict, driving, driving_faces, t
     with timed(seconds, "self-check"):
         trust = animation_trust(result, target, target_faces, registrations.get("target"), driver_trust)
     scale = body_scale(target, target_faces, driving[0], driving_faces)
+    result = center_bbox(result)  # the uncentred clip freed at once: one copy of it less at a time
     return Inference(result, combine, total, input_center, registrations, trust, scale)
 
 
