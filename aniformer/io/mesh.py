@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 import os
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -156,14 +156,32 @@ def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
 def write_obj_frames(folder: Path, frames: np.ndarray | str | os.PathLike, faces: np.ndarray,
                      progress: Callable[[int], object] | None = None) -> None:
     """frame_NNNN.obj (at least four digits) in ``folder`` for each of ``frames (T, V, 3)``, by `write_obj`;
-    ``frames`` may be the path of a .npy file of them, read memory-mapped (a writer process's input)."""
-    if not isinstance(frames, np.ndarray):
-        frames = np.load(frames, mmap_mode="r")
-    digits = max(4, len(str(len(frames) - 1)))
+    ``frames`` may be the path of a .npy file of them, read a frame at a time (a writer process's input)."""
+    count, frames = (len(frames), iter(frames)) if isinstance(frames, np.ndarray) else _npy_frames(frames)
+    digits = max(4, len(str(count - 1)))
     for k, vertices in enumerate(frames):
         write_obj(Path(folder) / f"frame_{k:0{digits}d}.obj", vertices, faces)
         if progress is not None:
             progress(1)
+
+
+def _npy_frames(path: str | os.PathLike) -> tuple[int, Iterator[np.ndarray]]:
+    """(T, the frames one by one) of a .npy file of ``(T, V, 3)``: read, not memory-mapped, so the reader holds one
+    frame and not every page it has seen (0.26 GB for 300 frames of 72k vertices)."""
+    file = open(path, "rb")  # closed by the generator
+    major, _ = np.lib.format.read_magic(file)
+    read_header = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+    shape, fortran_order, dtype = read_header(file)
+    if fortran_order or len(shape) != 3:
+        file.close()
+        raise ValueError(f"{path}: not C-ordered frames (T, V, 3), but {shape}")
+
+    def frames() -> Iterator[np.ndarray]:
+        with file:
+            for _ in range(shape[0]):
+                yield np.fromfile(file, dtype, count=shape[1] * shape[2]).reshape(shape[1:])
+
+    return shape[0], frames()
 
 
 def _vertex_lines(x: np.ndarray) -> bytes:
