@@ -30,7 +30,7 @@ import torch
 import trimesh
 
 from aniformer.io.files import atomic_path
-from aniformer.surface import GeodesicFrame, OrientedCloud, chamfer, geodesic_frame, nearest_pairs, normals
+from aniformer.surface import GeodesicFrame, OrientedCloud, chamfer, extremities, geodesic_frame, nearest_pairs, normals
 from aniformer.transfer import mesh_edges
 
 COARSE_TOPOLOGY = "notoes_collapse3pc"  # every hypothesis is tried here first: Anny's rig is one for all topologies
@@ -383,9 +383,9 @@ def cached_fit(vertices: np.ndarray, faces: np.ndarray, topology: str, **options
 
 
 def body_axis(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """``(3,)``: the unit direction from a body's feet to its head (``geodesic_frame``'s extremities)."""
-    frame = geodesic_frame(np.asarray(vertices, np.float64), faces)
-    axis = vertices[frame.regions[0]].mean(0) - np.concatenate([vertices[r] for r in frame.regions[3:]]).mean(0)
+    """``(3,)``: the unit direction from a body's feet to its head (``aniformer.surface.extremities``)."""
+    regions = extremities(np.asarray(vertices, np.float64), faces)
+    axis = vertices[regions[0]].mean(0) - np.concatenate([vertices[r] for r in regions[3:]]).mean(0)
     return axis / max(float(np.linalg.norm(axis)), 1e-12)
 
 

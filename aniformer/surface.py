@@ -60,13 +60,26 @@ class GeodesicFrame:
 
 
 def geodesic_frame(vertices: np.ndarray, faces: np.ndarray) -> GeodesicFrame:
-    """The extremities of a body's largest connected surface, labelled. The four limb ends are the first
-    four samples of farthest-point sampling of geodesic distance (hands and feet are far apart from each
-    other; the head is not the fifth: a belly point was measured a few millimetres farther from the
-    limbs than the crown). The head is the vertex, and the hands the pair of limb ends, that make it
-    nearest both hands alike and farthest from both feet alike. Each region is the vertices within
-    ``EXTREMITY_RADIUS`` of the head-to-foot distance of its point."""
+    """The body's labelled extremities (`extremities`) and every vertex's geodesic distances to them."""
     graph = _edge_graph(np.asarray(vertices, np.float64), faces)
+    regions, scale = _labelled_extremities(graph, vertices)
+    coordinates = np.stack([scipy.sparse.csgraph.dijkstra(graph, directed=False, indices=r, min_only=True)
+                            for r in regions], 1) / scale
+    return GeodesicFrame(regions, coordinates)
+
+
+def extremities(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
+    """A body's five extremities, labelled (``GeodesicFrame.regions``), without every vertex's distances to them."""
+    return _labelled_extremities(_edge_graph(np.asarray(vertices, np.float64), faces), vertices)[0]
+
+
+def _labelled_extremities(graph: scipy.sparse.csr_matrix, vertices: np.ndarray) -> tuple[list[np.ndarray], float]:
+    """(regions, the head-to-foot distance) of the body's largest connected surface. The four limb ends are
+    the first four samples of farthest-point sampling of geodesic distance (hands and feet are far apart from
+    each other; the head is not the fifth: a belly point was measured a few millimetres farther from the limbs
+    than the crown). The head is the vertex, and the hands the pair of limb ends, that make it nearest both
+    hands alike and farthest from both feet alike. Each region is the vertices within ``EXTREMITY_RADIUS`` of
+    the head-to-foot distance of its point."""
     _, component = scipy.sparse.csgraph.connected_components(graph, directed=False)
     body = np.flatnonzero(component == np.bincount(component).argmax())
     centre = body[np.linalg.norm(vertices[body] - vertices[body].mean(0), axis=1).argmin()]
@@ -88,10 +101,7 @@ def geodesic_frame(vertices: np.ndarray, faces: np.ndarray) -> GeodesicFrame:
     head = int(headness(hands, feet).argmax())
     distances.append(scipy.sparse.csgraph.dijkstra(graph, directed=False, indices=head))
     scale = limbs[head, feet].mean()
-    regions = [np.flatnonzero(distances[k] < EXTREMITY_RADIUS * scale) for k in (-1, *hands, *feet)]
-    coordinates = np.stack([scipy.sparse.csgraph.dijkstra(graph, directed=False, indices=r, min_only=True)
-                            for r in regions], 1) / scale
-    return GeodesicFrame(regions, coordinates)
+    return [np.flatnonzero(distances[k] < EXTREMITY_RADIUS * scale) for k in (-1, *hands, *feet)], scale
 
 
 @dataclass(frozen=True)
