@@ -5,6 +5,7 @@ motion.bvh, staged into the output directory (`write_animation`, for jobs/animat
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import json
 import os
@@ -112,14 +113,18 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
     if UNITS[options.unit] != 1:  # metres are written as they are: no copy of the clip
         in_target_axes = in_target_axes / UNITS[options.unit]
     with staged_output_dir(out, options.overwrite) as tmp:
+        def glb() -> None:
+            with timed(seconds, "write GLB"):
+                write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
+                          frames_per_mesh=options.frames_per_mesh,
+                          extras={"checkpoint": str(options.checkpoint), "driving": str(options.driving)})
+
         with tqdm(total=len(local), unit="obj", desc="write OBJ", disable=options.no_progress,
                   file=sys.stderr) as obj_bar, \
-                objs_written_beside(tmp / "frames", in_target_axes, target_faces, in_process, seconds, obj_bar):
-            if not options.no_glb:
-                with timed(seconds, "write GLB"):
-                    write_glb(tmp / "animation.glb", local, target_faces, fps=fps, name=name, translation=translation,
-                              frames_per_mesh=options.frames_per_mesh,
-                              extras={"checkpoint": str(options.checkpoint), "driving": str(options.driving)})
+                objs_written_beside(tmp / "frames", in_target_axes, target_faces, in_process, seconds, obj_bar), \
+                concurrent.futures.ThreadPoolExecutor(1) as beside:
+            # the GLB is array arithmetic and file writes, which release the GIL: it overlaps the rig and preview
+            glb_written = None if options.no_glb else beside.submit(glb)
             if options.rig:
                 with timed(seconds, "rig"):
                     write_rig(tmp, options, summary, target, target_faces, world, rig_source)
@@ -132,6 +137,8 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
                     render_animation_gif([("driver", shown, driving_faces), ("result", world, target_faces)],
                                          tmp / "preview.gif", fps=fps, max_frames=options.preview_frames,
                                          progress=bar.update)
+            if glb_written is not None:
+                glb_written.result()  # its exception, if it raised
         (tmp / "animation.json").write_text(json.dumps(summary, indent=2) + "\n")
 
 
