@@ -75,7 +75,7 @@ def objs_written_beside(folder: Path, frames, faces, in_process: bool, seconds: 
             write_obj_frames(folder, frames, faces, progress=bar.update)
         yield
         return
-    handoff = folder.parent / ".frames.npy"  # the staging directory's: read memory-mapped by the writer
+    handoff = folder.parent / ".frames.npy"  # in the staging directory: the writer reads it a frame at a time
     with timed(seconds, "write OBJ"):
         np.save(handoff, np.asarray(frames))
     writer = multiprocessing.get_context("spawn").Pool(1)  # spawn: this process holds torch's threads

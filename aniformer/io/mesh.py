@@ -12,8 +12,9 @@ from __future__ import annotations
 import functools
 import os
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -157,31 +158,31 @@ def write_obj_frames(folder: Path, frames: np.ndarray | str | os.PathLike, faces
                      progress: Callable[[int], object] | None = None) -> None:
     """frame_NNNN.obj (at least four digits) in ``folder`` for each of ``frames (T, V, 3)``, by `write_obj`;
     ``frames`` may be the path of a .npy file of them, read a frame at a time (a writer process's input)."""
-    count, frames = (len(frames), iter(frames)) if isinstance(frames, np.ndarray) else _npy_frames(frames)
+    if isinstance(frames, np.ndarray):
+        _write_obj_frames(Path(folder), len(frames), frames, faces, progress)
+        return
+    with open(frames, "rb") as file:
+        _write_obj_frames(Path(folder), *_npy_frames(file), faces, progress)
+
+
+def _write_obj_frames(folder: Path, count: int, frames: Iterable[np.ndarray], faces: np.ndarray,
+                      progress: Callable[[int], object] | None) -> None:
     digits = max(4, len(str(count - 1)))
     for k, vertices in enumerate(frames):
-        write_obj(Path(folder) / f"frame_{k:0{digits}d}.obj", vertices, faces)
+        write_obj(folder / f"frame_{k:0{digits}d}.obj", vertices, faces)
         if progress is not None:
             progress(1)
 
 
-def _npy_frames(path: str | os.PathLike) -> tuple[int, Iterator[np.ndarray]]:
-    """(T, the frames one by one) of a .npy file of ``(T, V, 3)``: read, not memory-mapped, so the reader holds one
-    frame and not every page it has seen (0.26 GB for 300 frames of 72k vertices)."""
-    file = open(path, "rb")  # closed by the generator
+def _npy_frames(file: BinaryIO) -> tuple[int, Iterator[np.ndarray]]:
+    """(T, the frames one by one) of an open .npy file of ``(T, V, 3)``: read, not memory-mapped, so the reader
+    holds one frame and not every page it has seen (0.26 GB for 300 frames of 72k vertices)."""
     major, _ = np.lib.format.read_magic(file)
     read_header = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
     shape, fortran_order, dtype = read_header(file)
     if fortran_order or len(shape) != 3:
-        file.close()
-        raise ValueError(f"{path}: not C-ordered frames (T, V, 3), but {shape}")
-
-    def frames() -> Iterator[np.ndarray]:
-        with file:
-            for _ in range(shape[0]):
-                yield np.fromfile(file, dtype, count=shape[1] * shape[2]).reshape(shape[1:])
-
-    return shape[0], frames()
+        raise ValueError(f"{file.name}: not C-ordered frames (T, V, 3), but {shape}")
+    return shape[0], (np.fromfile(file, dtype, count=shape[1] * shape[2]).reshape(shape[1:]) for _ in range(shape[0]))
 
 
 def _vertex_lines(x: np.ndarray) -> bytes:
