@@ -35,6 +35,7 @@ from aniformer.metrics import PMD_SCALE, pmd_per_frame
 Predict = Callable[[torch.Tensor, torch.Tensor, torch.Tensor | None], torch.Tensor]
 
 COPY_DRIVER, STATIC_TARGET, TRANSFER = "copy-driver", "static target", "deformation transfer"
+SKINNED = "skinned transfer"
 BASELINES = (COPY_DRIVER, STATIC_TARGET, TRANSFER)
 DEFAULT_CLIP_FRAMES = 16  # the acceleration error's clips: half a second at 30 fps, 14 model windows
 DEFAULT_CLIP_PAIRS = 64  # clips per split: each is animated window by window, ~40x a pair's cost
@@ -78,6 +79,19 @@ def transfer_contender(window: int, name: str = TRANSFER) -> Contender:
         if faces is None:
             raise ValueError("deformation transfer needs the pairs' target_faces")
         return deformation_transfer(driving, target, faces)
+
+    return Contender(name, predict, window, slice(None), needs_correspondence=True)
+
+
+def skinned_transfer_contender(window: int, name: str = SKINNED) -> Contender:
+    """Anny's skeleton fitted to every frame and played on the target's (aniformer/skinned_transfer.py), no
+    learning: needs the pairs on one of Anny's topologies, in correspondence."""
+    from aniformer.skinned_transfer import skinned_transfer
+
+    def predict(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None) -> torch.Tensor:
+        if faces is None:
+            raise ValueError("the skinned transfer needs the pairs' target_faces")
+        return skinned_transfer(driving, target, faces)
 
     return Contender(name, predict, window, slice(None), needs_correspondence=True)
 
@@ -232,7 +246,7 @@ def parse_levels(text: str) -> list[float]:
 def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[str], *, pairs: int,
                 topology: str | None = None, device: str | torch.device = "cpu", batch_size: int = 8,
                 progress: Callable[[], None] | None = None,
-                refused: dict[str, list[bool]] | None = None) -> dict[str, dict[str, np.ndarray]]:
+                refused: dict[str, list[bool]] | None = None, skinned: bool = False) -> dict[str, dict[str, np.ndarray]]:
     """{row: {variant: PMD x1e4 per pair}} on targets and drivers of other topologies
     (``synth.variants``): the model and the deformation transfer alone, each through the
     registration onto ``topology`` (default: the stream's) of the target where its faces are not
@@ -240,7 +254,8 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
     variant with a driver of its own (``foreign_driver``) has the driver registered too, on the
     whole clip (``correspondence.register_clip``), and the model slides its window over the clip
     (``animate.animate_sequence``): every frame is scored. ``refused``, when given, gets {variant:
-    per pair, whether the self-check refuses the model's result} (``trust.animation_trust``)."""
+    per pair, whether the self-check refuses the model's result} (``trust.animation_trust``). ``skinned``: the
+    skinned transfer too (``aniformer.skinned_transfer``), on the same registered templates as the other rows."""
     from aniformer.animate import animate_sequence
     from aniformer.correspondence import Correspondence, register_clip
     from aniformer.synth.stream import _body_model
@@ -253,6 +268,10 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
     frames = model.config.output_frames()
     predict = model_contender("model", model, device).predict
     rows = {"model": lambda d, t: predict(d, t, faces), TRANSFER: lambda d, t: deformation_transfer(d, t, faces)}
+    if skinned:
+        from aniformer.skinned_transfer import skinned_transfer
+
+        rows[SKINNED] = lambda d, t: skinned_transfer(d, t, faces)
     scores = {name: {v: [] for v in variants} for name in (*rows, COPY_DRIVER, STATIC_TARGET)}
 
     def score(row: str, variant: str, pred: np.ndarray, truth: np.ndarray) -> None:
@@ -261,9 +280,10 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
 
     def drive_clip(clip: np.ndarray, target: np.ndarray) -> dict[str, np.ndarray]:
         """Each row's template posed by a whole driving ``clip (N, V, 3)`` on the template."""
+        whole = {name: run(torch.from_numpy(clip[None]), torch.from_numpy(target[None]))[0].numpy()
+                 for name, run in rows.items() if name != "model"}  # training-free: every frame alone
         return {"model": animate_sequence(rows["model"], clip, target, window=model.config.window, outputs=frames,
-                                          device=device),
-                TRANSFER: rows[TRANSFER](torch.from_numpy(clip[None]), torch.from_numpy(target[None]))[0].numpy()}
+                                          device=device), **whole}
 
     for lo in range(0, pairs, batch_size):
         for pair in variant_pairs(stream, split, 0, range(lo, min(pairs, lo + batch_size)), variants):

@@ -10,7 +10,8 @@ trained on a stream (``data.source: stream``) is
 scored on the stream's splits, made on the fly (``--topology`` to score on another Anny topology);
 otherwise the bank is ``--bank DIR``, else ``bank/`` beside the checkpoint (where jobs/train.py
 puts it). Rows: the checkpoint, every ``--compare`` model and the baselines: copy-driver, the static
-target (the target, unmoved) and the deformation transfer alone (aniformer/transfer.py); columns:
+target (the target, unmoved) and the deformation transfer alone (aniformer/transfer.py), and with
+``--skinned-transfer`` Anny's skeleton fitted to the driver and played on the target; columns:
 every split (``--splits`` to choose). ``--noise`` adds a sweep of uniform driver noise on one split
 (``--noise-split``) and plots PMD vs noise. Outputs in ``--out``: results.md, results.csv,
 results.json (+ noise.csv, noise.png), written under a temporary name and renamed into place when
@@ -60,6 +61,10 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--no-copy-driver", action="store_true",
                    help="leave out the baseline rows (copy-driver, static target, deformation transfer)")
+    p.add_argument("--skinned-transfer", action="store_true",
+                   help="also score the skinned transfer: Anny's skeleton fitted to every driving frame and played on "
+                        "the target's fitted body (aniformer/skinned_transfer.py; no learning, ~1 s per pair on 2 cores; "
+                        "pairs on Anny's topologies; not in the acceleration table)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: cuda if available)")
     p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
     p.add_argument("--no-mlflow", action="store_true", help="do not log to MLflow")

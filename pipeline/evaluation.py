@@ -36,6 +36,7 @@ class EvaluateOptions:
     seed: int | None
     batch_size: int
     no_copy_driver: bool
+    skinned_transfer: bool
     experiment: str
     no_mlflow: bool
     overwrite: bool
@@ -213,16 +214,26 @@ def load_models(checkpoint: str, compare: list) -> tuple[Path, object, dict, lis
 
 
 def contenders_of(options: EvaluateOptions, rows: list, window: int, device):
-    """The rows' models, then (unless --no-copy-driver) the three baselines, under unique names."""
-    from aniformer.evaluate import copy_driver_contender, model_contender, static_target_contender, transfer_contender
+    """The rows' models, then (unless --no-copy-driver) the three baselines and (--skinned-transfer) the skinned
+    transfer, under unique names."""
+    from aniformer.evaluate import (
+        SKINNED,
+        copy_driver_contender,
+        model_contender,
+        skinned_transfer_contender,
+        static_target_contender,
+        transfer_contender,
+    )
 
-    baselines = ["copy-driver", "static target", "deformation transfer"]
-    labels = [r[0] for r in rows] + ([] if options.no_copy_driver else baselines)
+    baselines = [] if options.no_copy_driver else ["copy-driver", "static target", "deformation transfer"]
+    labels = [r[0] for r in rows] + baselines + ([SKINNED] if options.skinned_transfer else [])
     if len(set(labels)) != len(labels):
         raise UserError(f"row names must be unique, got {', '.join(labels)}")
     contenders = [model_contender(label, m, device) for label, m in rows]
     if not options.no_copy_driver:  # one topology per bank or stream: driver and target always correspond
         contenders += [copy_driver_contender(window), static_target_contender(window), transfer_contender(window)]
+    if options.skinned_transfer:
+        contenders.append(skinned_transfer_contender(window))
     return contenders
 
 
@@ -232,7 +243,15 @@ def score(options: EvaluateOptions, rows, contenders, data: EvalData, levels, de
     errors}} or None), with a progress bar on stderr."""
     from tqdm import tqdm
 
-    from aniformer.evaluate import DEFAULT_CLIP_PAIRS, Samplers, clip_accelerations, evaluate_pairs, noise_sweep, target_pmds
+    from aniformer.evaluate import (
+        DEFAULT_CLIP_PAIRS,
+        SKINNED,
+        Samplers,
+        clip_accelerations,
+        evaluate_pairs,
+        noise_sweep,
+        target_pmds,
+    )
 
     model, splits, pairs, seed = rows[0][1], data.splits, data.pairs, data.seed
     if options.targets is not None:
@@ -240,7 +259,7 @@ def score(options: EvaluateOptions, rows, contenders, data: EvalData, levels, de
         with tqdm(total=pairs, unit="pair", desc="evaluate targets", disable=options.no_progress, file=sys.stderr) as bar:
             scores = target_pmds(model, data.sampler(model.config.window, "none"), options.target_split, splits,
                                  pairs=pairs, device=device, batch_size=options.batch_size,
-                                 progress=lambda: bar.update(1), refused=refused)
+                                 progress=lambda: bar.update(1), refused=refused, skinned=options.skinned_transfer)
         return {rows[0][0]: scores.pop("model"), **scores}, None, refused, None
     samplers = Samplers(data.sampler, data.source.shuffle)
     steps = len(contenders) * (len(splits) + (len(levels) if levels else 0)) + (len(splits) if data.clip_frames else 0)
@@ -254,9 +273,10 @@ def score(options: EvaluateOptions, rows, contenders, data: EvalData, levels, de
         if data.clip_frames:
             clips = data.sampler(data.clip_frames, "none")
             clip_pairs = options.clip_pairs or min(pairs, DEFAULT_CLIP_PAIRS)
-            accelerations = {c.name: {} for c in contenders}
+            sliding = [c for c in contenders if c.name != SKINNED]  # a fit per frame of every window: hours
+            accelerations = {c.name: {} for c in sliding}
             for split in splits:
-                for name, values in clip_accelerations(contenders, clips, split, pairs=clip_pairs).items():
+                for name, values in clip_accelerations(sliding, clips, split, pairs=clip_pairs).items():
                     accelerations[name][split] = values
                 bar.update(1)
     return scores, sweep, None, accelerations

@@ -108,6 +108,10 @@ def test_ratio_rows_divide_each_model_by_the_transfer_and_the_better_trivial_bas
     assert "| **B** | **1.00** |" not in md and "| B | **1.00** |" in md  # a ratio is never the column's best
     assert "| A ÷ transfer | 0.50 |" in md and "| B ÷ min(copy-driver, static target) | 0.05 |" in md
     assert ratio_rows({"A": {"seen": 1.0}}) == {}  # no baseline rows, no ratios
+    # the skinned transfer: a reference for the models, and divided by the others itself
+    ratios = ratio_rows(table | {"skinned transfer": {"seen": 3.0}})
+    assert ratios["A ÷ skinned transfer"] == {"seen": 2.0} and ratios["skinned transfer ÷ transfer"] == {"seen": 0.25}
+    assert "skinned transfer ÷ skinned transfer" not in ratios
 
 
 def test_acceleration_error_is_the_mean_distance_of_second_differences():
@@ -253,6 +257,28 @@ def test_evaluate_default_bank_beside_checkpoint_matches_training_metric(tiny_ru
         expected = pmd(model(torch.from_numpy(batch["driving"]), torch.from_numpy(batch["target"])),
                        torch.from_numpy(batch["ground_truth"])).item() * PMD_SCALE
     assert float(rows[0]["unseen"]) == pytest.approx(expected, rel=1e-4)
+
+
+@pytest.mark.slow
+@pytest.mark.ray
+def test_evaluate_skinned_transfer_row_is_its_pmd_on_the_unshuffled_pairs(tiny_run, tmp_path):
+    """--skinned-transfer: a row of its own, scored on the pairs in correspondence, and each model's ratio to it."""
+    from aniformer.metrics import PMD_SCALE, pmd
+    from aniformer.skinned_transfer import skinned_transfer
+    from pipeline.data import PairSampler, load_bank
+
+    out = tmp_path / "e"
+    evaluate_main(["--checkpoint", tiny_run / "best.pt", "--out", out, "--splits", "unseen", "--pairs", 4,
+                   "--no-mlflow", "--no-progress", "--no-copy-driver", "--skinned-transfer"])
+    rows = {r["method"]: r for r in csv.DictReader((out / "results.csv").open())}
+    assert list(rows) == ["AniFormer", "skinned transfer"]
+    sampler = PairSampler(load_bank(tiny_run / "bank"), window=3, shuffle="none", center=TINY_DATA["center"],
+                          seed=TINY_DATA["seed"], eval_pairs=4)
+    batch = {k: torch.from_numpy(v) for k, v in sampler.batch("unseen", 0, np.arange(4), n=4).items()}
+    expected = pmd(skinned_transfer(batch["driving"], batch["target"], batch["target_faces"]),
+                   batch["ground_truth"]).item() * PMD_SCALE
+    assert float(rows["skinned transfer"]["unseen"]) == pytest.approx(expected, rel=1e-4)
+    assert "| AniFormer ÷ skinned transfer |" in (out / "results.md").read_text()
 
 
 def _bad_eval(kind: str, root: Path, run_dir: Path) -> tuple[list, str]:

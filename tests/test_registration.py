@@ -77,6 +77,17 @@ def test_shipped_model_animates_targets_of_other_topologies_within_the_same_boun
         assert pmd[variant]["model"] < 1.5 * pmd["same"]["model"] + 1.0, pmd
 
 
+def test_skinned_transfer_through_the_registration_of_a_remeshed_target(shipped, stream):
+    """The skinned transfer's row of the --targets table: the registered template of a remeshed body, its fitted
+    skeleton driven by the driver's, carried back; closer to the ground truth than the deformation transfer."""
+    from aniformer.evaluate import SKINNED, TRANSFER, target_pmds
+
+    model, _ = shipped
+    scores = target_pmds(model, stream, "characters", ["remeshed"], pairs=1, batch_size=1, skinned=True)
+    assert set(scores) == {"model", TRANSFER, SKINNED, "copy-driver", "static target"}
+    assert float(scores[SKINNED]["remeshed"][0]) < float(scores[TRANSFER]["remeshed"][0]), scores
+
+
 def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main, capsys, monkeypatch):
     """jobs/animate.py without --checkpoint or --up: a decimated body (its own topology) saved as a GLB
     in glTF's y-up axes, driven by a stream clip. It is read as y-up, registered in any orientation,

@@ -9,21 +9,24 @@ import io
 import math
 from collections.abc import Sequence
 
-from aniformer.evaluate import BASELINES, COPY_DRIVER, STATIC_TARGET, TRANSFER
+from aniformer.evaluate import BASELINES, COPY_DRIVER, SKINNED, STATIC_TARGET, TRANSFER
 
 
 def ratio_rows(table: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
-    """Each model row (not a baseline) of ``table`` divided by the deformation transfer alone and by the
-    better trivial baseline (min of copy-driver and static target), where those rows are present."""
+    """Each model row (not a baseline; the skinned transfer counts as one) of ``table`` divided by the deformation
+    transfer alone, by the skinned transfer and by the better trivial baseline (min of copy-driver and static
+    target), where those rows are present."""
     models = [name for name in table if name not in BASELINES]
     references = {}
     if TRANSFER in table:
         references["transfer"] = table[TRANSFER]
+    if SKINNED in table:
+        references[SKINNED] = table[SKINNED]
     if COPY_DRIVER in table and STATIC_TARGET in table:
         references["min(copy-driver, static target)"] = {
             s: min(table[COPY_DRIVER][s], table[STATIC_TARGET][s]) for s in table[COPY_DRIVER]}
     return {f"{name} ÷ {label}": {s: table[name][s] / reference[s] if reference[s] > 0 else math.nan for s in reference}
-            for label, reference in references.items() for name in models}
+            for label, reference in references.items() for name in models if name != label}
 
 
 def _fmt(value: float) -> str:
