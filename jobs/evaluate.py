@@ -63,8 +63,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help="leave out the baseline rows (copy-driver, static target, deformation transfer)")
     p.add_argument("--skinned-transfer", action="store_true",
                    help="also score the skinned transfer: Anny's skeleton fitted to every driving frame and played on "
-                        "the target's fitted body (aniformer/skinned_transfer.py; no learning, ~4 s per pair measured beside another job on 2 cores; "
-                        "pairs on Anny's topologies; not in the acceleration table)")
+                        "the target's fitted body (aniformer/skinned_transfer.py; no learning; ~4 s per pair on 2 "
+                        "cores beside another job; pairs on Anny's topologies; not in the acceleration table)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: cuda if available)")
     p.add_argument("--experiment", default="aniformer", help="MLflow experiment")
     p.add_argument("--no-mlflow", action="store_true", help="do not log to MLflow")
