@@ -71,29 +71,30 @@ def copy_driver_contender(window: int, name: str = COPY_DRIVER) -> Contender:
                      needs_correspondence=True)
 
 
-def transfer_contender(window: int, name: str = TRANSFER) -> Contender:
-    """The geometric prior alone (aniformer/transfer.py), no learning: needs vertex correspondence."""
-    from aniformer.transfer import deformation_transfer
+def _faces_contender(name: str, transfer: Predict, window: int) -> Contender:
+    """A training-free method that moves the target along the pairs' faces: needs them, and vertex correspondence."""
 
     def predict(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None) -> torch.Tensor:
         if faces is None:
-            raise ValueError("deformation transfer needs the pairs' target_faces")
-        return deformation_transfer(driving, target, faces)
+            raise ValueError(f"the {name} needs the pairs' target_faces")
+        return transfer(driving, target, faces)
 
     return Contender(name, predict, window, slice(None), needs_correspondence=True)
+
+
+def transfer_contender(window: int, name: str = TRANSFER) -> Contender:
+    """The geometric prior alone (aniformer/transfer.py), no learning."""
+    from aniformer.transfer import deformation_transfer
+
+    return _faces_contender(name, deformation_transfer, window)
 
 
 def skinned_transfer_contender(window: int, name: str = SKINNED) -> Contender:
     """Anny's skeleton fitted to every frame and played on the target's (aniformer/skinned_transfer.py), no
-    learning: needs the pairs on one of Anny's topologies, in correspondence."""
+    learning: the pairs on one of Anny's topologies."""
     from aniformer.skinned_transfer import skinned_transfer
 
-    def predict(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor | None) -> torch.Tensor:
-        if faces is None:
-            raise ValueError("the skinned transfer needs the pairs' target_faces")
-        return skinned_transfer(driving, target, faces)
-
-    return Contender(name, predict, window, slice(None), needs_correspondence=True)
+    return _faces_contender(name, skinned_transfer, window)
 
 
 def static_target_contender(window: int, name: str = STATIC_TARGET) -> Contender:

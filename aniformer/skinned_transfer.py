@@ -9,26 +9,16 @@ yardstick for what a learned model adds on such data (docs/results.md).
 
 from __future__ import annotations
 
-import numpy as np
 import roma
 import torch
 
+from aniformer.animation_run import anny_topology
 from aniformer.geometry import center_bbox
 from aniformer.registration import anny_template, kabsch, one_thread
 
 STEPS = (600, 600)  # Adam steps with the build free, then with it held
 LR = 0.1  # cosine-annealed to LR / 30 in each round
 BUILD_LR = 0.3  # measured on validation pairs: the build converges slowest
-
-
-def anny_topology_of(faces: np.ndarray, num_vertices: int) -> str:
-    """The Anny topology with these faces."""
-    from aniformer.synth.bodies import TOPOLOGIES, BodyModel
-
-    for topology, count in TOPOLOGIES.items():
-        if count == num_vertices and np.array_equal(BodyModel(topology).faces, faces):
-            return topology
-    raise ValueError(f"a skinned transfer needs meshes on one of Anny's topologies; got {num_vertices} vertices")
 
 
 def _adam(params: list[torch.Tensor], steps: int, loss_of, lrs=None) -> None:
@@ -67,7 +57,8 @@ def fit_poses(meshes: torch.Tensor, groups: torch.Tensor, topology: str,
         _adam([logits, rotvecs], steps[0], lambda: distance(posed(template.rest(torch.sigmoid(logits)))),
               [BUILD_LR, LR])
         phenotypes = torch.sigmoid(logits).detach()
-        rest = {k: template.rest(phenotypes)[k].detach() for k in ("rest_vertices", "rest_bone_poses")}
+        rest = template.rest(phenotypes)
+        rest = {k: rest[k].detach() for k in ("rest_vertices", "rest_bone_poses")}
         _adam([rotvecs], steps[1], lambda: distance(posed(rest)))
     with torch.no_grad():
         residual = distance(posed(rest))
@@ -79,7 +70,9 @@ def skinned_transfer(driving: torch.Tensor, target: torch.Tensor, faces: torch.T
     Anny topology of ``faces (F, 3)`` (or ``(B, F, 3)``) -> ``(B, T, V, 3)`` float32, bounding-box centred."""
     B, T, V, _ = driving.shape
     faces = faces[0] if faces.dim() == 3 else faces
-    topology = anny_topology_of(faces.cpu().numpy(), V)
+    topology = anny_topology(driving[0, 0], faces.cpu().numpy())
+    if topology is None:
+        raise ValueError(f"a skinned transfer needs meshes on one of Anny's topologies; got {V} vertices")
     template = anny_template(topology)
     meshes = torch.cat([driving.reshape(B * T, V, 3), target]).cpu().float()
     groups = torch.cat([torch.arange(B).repeat_interleave(T), B + torch.arange(B)])
@@ -94,7 +87,8 @@ def skinned_transfer(driving: torch.Tensor, target: torch.Tensor, faces: torch.T
     # what Anny's body misses of the target, carried by each vertex's skinning rotation (a blend's nearest
     # rotation: a blend of two rotations far apart is near singular, and inverting it tears the mesh)
     turns = roma.special_procrustes(skinning[..., :3, :3])
-    own = target.cpu().double() - target.cpu().double().mean(1, keepdim=True) + fitted.mean(1, keepdim=True)
+    own = target.cpu().double()
+    own = own - own.mean(1, keepdim=True) + fitted.mean(1, keepdim=True)
     at_rest = (turns[:B].transpose(-1, -2) @ (own - fitted)[..., None])
     moved = driven + (turns[B:].reshape(B, T, V, 3, 3) @ at_rest[:, None])[..., 0]
     return center_bbox(moved).float().to(driving.device)
