@@ -142,7 +142,7 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
         (tmp / "animation.json").write_text(json.dumps(summary, indent=2) + "\n")
 
 
-def write_animation(out: Path, options: AnimateOptions, state: dict, window: int, name: str, fps: float, driving,
+def write_animation(out: Path, options: AnimateOptions, state: dict, name: str, fps: float, driving,
                     driving_faces, target, target_faces, axes: dict, inference: Inference, seconds: dict,
                     objs_process: bool = False) -> dict:
     """Place the inferred frames in the world, then `write_outputs` into
@@ -156,7 +156,7 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, window: int
         "checkpoint": str(options.checkpoint), "target": str(options.target), "driving": str(options.driving),
         "name": name, "frames": len(local), "fps": fps, "unit": options.unit,
         "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
-        "window": window, "combine": inference.combine, "windows": inference.windows,
+        "window": inference.window, "combine": inference.combine, "windows": inference.windows,
         "input_center": inference.input_center,
         "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template),
                               "fit_cached": fit.fit_cached}

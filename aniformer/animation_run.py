@@ -186,6 +186,7 @@ class Inference:
 
     frames: object  # (frames, V, 3) the target animated, z up, bounding-box centred per frame
     combine: str  # how overlapping windows' frames were combined
+    window: int  # frames per window
     windows: int
     input_center: str
     registrations: dict  # role ("target", "driver") -> the `Correspondence` that carried it to the model's topology
@@ -213,10 +214,11 @@ def infer(options: AnimateOptions, model, state: dict, driving, driving_faces, t
     model = functools.partial(model.to(device), faces=torch.from_numpy(np.asarray(faces, np.int64)).to(device))
     outputs = config.output_frames()
     combine = options.combine if outputs == slice(None) else "center"
-    total = num_windows(len(driving), config.window, outputs, combine)
+    window = config.window or len(driving)  # 0: the whole clip in one window (the skinned transfer)
+    total = num_windows(len(driving), window, outputs, combine)
     with tqdm(total=total, unit="window", desc="animate", disable=options.no_progress, file=sys.stderr) as bar, \
             timed(seconds, "network"):
-        result = animate_sequence(model, model_driving, model_target, window=config.window, outputs=outputs,
+        result = animate_sequence(model, model_driving, model_target, window=window, outputs=outputs,
                                   combine=combine, center=input_center, batch_size=options.batch_size, device=device,
                                   progress=bar.update, force=options.force)
     if "target" in registrations:
@@ -228,7 +230,7 @@ def infer(options: AnimateOptions, model, state: dict, driving, driving_faces, t
         trust = animation_trust(result, target, target_faces, registrations.get("target"), driver_trust)
     scale = body_scale(target, target_faces, driving[0], driving_faces)
     result = center_bbox(result)  # the uncentred clip freed at once: one copy of it less at a time
-    return Inference(result, combine, total, input_center, registrations, trust, scale)
+    return Inference(result, combine, window, total, input_center, registrations, trust, scale)
 
 
 def animate_files(options: AnimateOptions, inputs: tuple, out: Path, device, load_model: Callable[[], tuple],
@@ -260,6 +262,6 @@ def animate_files(options: AnimateOptions, inputs: tuple, out: Path, device, loa
                         "driver: --up) and that both are whole human bodies, or pass --force to write it anyway")
     inferred = time.perf_counter()
     seconds["inference"] = round(inferred - loaded, 3)
-    summary = write_animation(out, options, state, model.config.window, name, fps, driving, driving_faces, target,
-                              target_faces, axes, inference, seconds, objs_process=True)
+    summary = write_animation(out, options, state, name, fps, driving, driving_faces, target, target_faces, axes,
+                              inference, seconds, objs_process=True)
     return summary, trust, inferred - loaded

@@ -4,10 +4,13 @@ from its fitted pose and skinned in each driving frame's fitted pose, on the tar
 
 It is what a rig does (fit the driver's joint rotations, play them on the target's skeleton), and it is
 exact where the meshes are Anny's own bodies posed by Anny's skinning, as the stream's ground truth is: the
-yardstick for what a learned model adds on such data (docs/results.md).
+yardstick for what a learned model adds on such data (docs/results.md). jobs/animate.py runs it instead of a
+network with ``--checkpoint skinned`` (``skinned_model``): every frame of the clip fitted at once.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import roma
 import torch
@@ -19,6 +22,8 @@ from aniformer.registration import anny_template, kabsch, one_thread
 STEPS = (600, 600)  # Adam steps with the build free, then with it held
 LR = 0.1  # cosine-annealed to LR / 30 in each round
 BUILD_LR = 0.3  # measured on validation pairs: the build converges slowest
+REFERENCE = "skinned"  # jobs/animate.py's --checkpoint that names this method instead of a checkpoint
+TOPOLOGY = "notoes_collapse3pc"  # where it runs when neither mesh is Anny's: the shipped model's topology
 
 
 def _adam(params: list[torch.Tensor], steps: int, loss_of, lrs=None) -> None:
@@ -31,6 +36,7 @@ def _adam(params: list[torch.Tensor], steps: int, loss_of, lrs=None) -> None:
         schedule.step()
 
 
+@one_thread()  # all of it: the fit's path depends on the last bits of its start (measured: 2.4 cm apart on 1 or 2 threads)
 def fit_poses(meshes: torch.Tensor, groups: torch.Tensor, topology: str,
               steps: tuple[int, int] = STEPS) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Anny fitted to ``meshes (N, V, 3)`` of ``topology`` by vertex correspondence, one build per group
@@ -53,7 +59,7 @@ def fit_poses(meshes: torch.Tensor, groups: torch.Tensor, topology: str,
         bones = {"rest_bone_poses": rest["rest_bone_poses"][groups]}
         return template.model.get_skinned_vertices(rest["rest_vertices"][groups], template._skeleton(bones, rotvecs))
 
-    with torch.enable_grad(), one_thread():
+    with torch.enable_grad():
         _adam([logits, rotvecs], steps[0], lambda: distance(posed(template.rest(torch.sigmoid(logits)))),
               [BUILD_LR, LR])
         phenotypes = torch.sigmoid(logits).detach()
@@ -65,6 +71,7 @@ def fit_poses(meshes: torch.Tensor, groups: torch.Tensor, topology: str,
     return phenotypes, rotvecs.detach(), residual
 
 
+@one_thread()  # the same frames whatever the caller's threads (an animate process, a Ray actor)
 def skinned_transfer(driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """The target in the pose of each driving frame: ``driving (B, T, V, 3)``, ``target (B, V, 3)``, both on the
     Anny topology of ``faces (F, 3)`` (or ``(B, F, 3)``) -> ``(B, T, V, 3)`` float32, bounding-box centred."""
@@ -92,3 +99,34 @@ def skinned_transfer(driving: torch.Tensor, target: torch.Tensor, faces: torch.T
     at_rest = (turns[:B].transpose(-1, -2) @ (own - fitted)[..., None])
     moved = driven + (turns[B:].reshape(B, T, V, 3, 3) @ at_rest[:, None])[..., 0]
     return center_bbox(moved).float().to(driving.device)
+
+
+@dataclass(frozen=True)
+class ClipConfig:
+    """What jobs/animate.py reads of a model's config, for the skinned transfer: one window of the whole clip
+    (its frames' fits share the driver's build) and a per-vertex output (other topologies are registered)."""
+
+    window: int = 0  # 0: as many frames as the clip has
+    output: str = "skinned"
+
+    def output_frames(self) -> slice:
+        return slice(None)
+
+
+class SkinnedTransfer:
+    """``skinned_transfer`` where jobs/animate.py expects a model: ``(driving, target, faces) -> frames``."""
+
+    config = ClipConfig()
+
+    def to(self, device) -> SkinnedTransfer:  # it fits on the CPU and returns frames on the driver's device
+        return self
+
+    def __call__(self, driving: torch.Tensor, target: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+        return skinned_transfer(driving, target, faces)
+
+
+def skinned_model() -> tuple[SkinnedTransfer, dict]:
+    """(model, state) as ``aniformer.checkpoint.model_from_checkpoint`` gives a checkpoint's: what animation.json
+    records of the method, and the topology it runs on when neither mesh is Anny's."""
+    return SkinnedTransfer(), {"config": {"model": {"method": "skinned transfer", "steps": list(STEPS)},
+                                          "data": {"topology": TOPOLOGY}}, "epoch": None}

@@ -6,6 +6,7 @@ Run from the repository root (minutes per checkout on 2 cores):
     python bench/animate_bench.py --checkout before=/tmp/baseline --checkout after=.   # side by side
     python bench/animate_bench.py --targets 369 18k --frames 300 --rig   # also rigged.glb and motion.bvh
     python bench/animate_bench.py --targets 18k --frames 300 --warm-fit   # the target's fit kept from a run before
+    python bench/animate_bench.py --checkpoints pretrained skinned --targets 369 --frames 30   # network or skinned
 
 Inputs, made here and shared by every checkout so the runs differ only in code:
 - a driving clip on Anny's 369-vertex topology (``jumping_jacks``, 30 or 300 frames, OBJ files);
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import itertools
 import json
 import os
 import subprocess
@@ -81,12 +83,13 @@ def make_inputs(root: Path, frames: int, targets: list[str]) -> dict[str, Path]:
     return paths
 
 
-def run_animate(checkout: Path, target: Path, clip: Path, out: Path, fit_cache: Path, rig: bool = False) -> dict:
-    """One animate process, registering with the fits kept in ``fit_cache``: its animation.json's stage seconds,
-    wall time and peak RSS (and output sizes)."""
+def run_animate(checkout: Path, target: Path, clip: Path, out: Path, fit_cache: Path, rig: bool = False,
+                checkpoint: str = "pretrained") -> dict:
+    """One animate process of ``checkpoint``, registering with the fits kept in ``fit_cache``: its animation.json's
+    stage seconds, wall time and peak RSS (and output sizes)."""
     env = {**os.environ, "PYTHONPATH": str(checkout), "ANIFORMER_CACHE_DIR": str(fit_cache)}  # the checkout's package
-    command = [sys.executable, str(checkout / "jobs" / "animate.py"), "--target", str(target), "--driving", str(clip),
-               "--out", str(out), "--overwrite", "--no-progress", *(["--rig"] if rig else [])]
+    command = [sys.executable, str(checkout / "jobs" / "animate.py"), "--checkpoint", checkpoint, "--target", str(target),
+               "--driving", str(clip), "--out", str(out), "--overwrite", "--no-progress", *(["--rig"] if rig else [])]
     began = time.perf_counter()
     process = subprocess.Popen(command, env=env, cwd=checkout, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     output = process.stdout.read().decode()
@@ -111,6 +114,8 @@ def main() -> None:
     p.add_argument("--rig", action="store_true", help="animate with --rig, and report the output files' sizes")
     p.add_argument("--warm-fit", action="store_true",
                    help="time each target with its registration kept from an untimed run before (default: afresh)")
+    p.add_argument("--checkpoints", nargs="+", default=["pretrained"],
+                   help="jobs/animate.py's --checkpoint of each run (default: pretrained)")
     p.add_argument("--out", type=Path, help="write the rows as JSON here")
     args = p.parse_args()
     checkouts = dict(c.split("=", 1) for c in args.checkout) or {"now": str(REPO)}
@@ -120,14 +125,14 @@ def main() -> None:
         for frames in args.frames:
             inputs = make_inputs(root, frames, args.targets)
             for name in args.targets:
-                for label, checkout in checkouts.items():
+                for (label, checkout), checkpoint in itertools.product(checkouts.items(), args.checkpoints):
                     fit_cache = Path(tempfile.mkdtemp(prefix=f"fits-{label}-", dir=scratch))
                     run = functools.partial(run_animate, Path(checkout).resolve(), inputs[name], inputs["clip"],
-                                            Path(scratch) / "out", fit_cache, args.rig)
+                                            Path(scratch) / "out", fit_cache, args.rig, checkpoint)
                     if args.warm_fit:
                         run()
-                    row = {"checkout": label, "target": name, "frames": frames, "fit": "warm" if args.warm_fit else "cold",
-                           **run()}
+                    row = {"checkout": label, "checkpoint": checkpoint, "target": name, "frames": frames,
+                           "fit": "warm" if args.warm_fit else "cold", **run()}
                     row["fps_end_to_end"] = round(frames / row["wall_s"], 2)
                     print(json.dumps(row), flush=True)
                     rows.append(row)

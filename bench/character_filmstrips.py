@@ -1,11 +1,12 @@
 """Characters as users bring them, animated by a foreign driver through jobs/animate.py, as filmstrips.
 
     python bench/character_filmstrips.py --pair 2 --out bench/results/characters docs/characters
+    python bench/character_filmstrips.py --pair 2 --checkpoint skinned bench/results/skinned docs/characters/skinned
 
 For one test pair (split ``characters``), the target as a y-up GLB, in a random pose and lying
 (``aniformer.synth.variants``), each driven by the same 24-frame clip of a decimated, shuffled body
-that starts mid-motion (``foreign_driver``). Each runs ``jobs/animate.py`` as a user would (the
-shipped model, ``--up auto``); a refused result is run again with ``--force`` to look at what the
+that starts mid-motion (``foreign_driver``). Each runs ``jobs/animate.py`` as a user would (its
+``--checkpoint``, the shipped model by default; ``--up auto``); a refused result is run again with ``--force`` to look at what the
 self-check kept from being written. Rows of each PNG: driver, target, result, ground truth; it prints
 each run's exit status, self-check and PMD beside copy-driver and the static target.
 """
@@ -40,6 +41,7 @@ def _pmd(a: np.ndarray, b: np.ndarray) -> float:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--pair", type=int, default=2)
+    p.add_argument("--checkpoint", default="pretrained", help="jobs/animate.py's --checkpoint (default pretrained)")
     p.add_argument("out", type=Path, help="work directory (inputs and animate outputs)")
     p.add_argument("png", type=Path, help="directory of the filmstrips")
     args = p.parse_args()
@@ -61,9 +63,9 @@ def main() -> None:
             write_obj(target_file, case["target"], case["faces"])
         for force in (False, True):
             out = args.out / f"anim_{variant}{'_forced' if force else ''}"
-            argv = [sys.executable, "jobs/animate.py", "--target", str(target_file), "--driving", str(clip),
-                    "--out", str(out), "--overwrite", "--no-progress", "--preview-frames", "0", "--no-glb",
-                    *(["--force"] if force else [])]
+            argv = [sys.executable, "jobs/animate.py", "--checkpoint", args.checkpoint, "--target", str(target_file),
+                    "--driving", str(clip), "--out", str(out), "--overwrite", "--no-progress", "--preview-frames", "0",
+                    "--no-glb", *(["--force"] if force else [])]
             run = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True)
             lines = [line for line in (run.stdout + run.stderr).splitlines() if "self-check" in line or "registered" in line]
             print(f"{variant}{' --force' if force else ''}: exit {run.returncode}; " + " | ".join(lines), flush=True)

@@ -55,7 +55,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--checkpoint", default="pretrained", metavar="CKPT",
                    help="checkpoint file, MLflow run id, registered model (models:/NAME/latest, models:/NAME/VERSION, "
-                        "models:/NAME@ALIAS), or 'pretrained' (the default: the shipped model, docs/model_card.md)")
+                        "models:/NAME@ALIAS), 'pretrained' (the default: the shipped model, docs/model_card.md), or "
+                        "'skinned': no network, Anny's skeleton fitted to every frame and played on the target's "
+                        "(5-10x closer on Anny-made ground truth, docs/results.md; ~0.5 s per frame on 2 cores)")
     p.add_argument("--target", required=True, metavar="MESH", help="the mesh to animate (OBJ, PLY, ...)")
     p.add_argument("--driving", required=True, metavar="DIR_OR_GLOB", help="driving frames: a directory or a glob")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
@@ -113,9 +115,13 @@ def local_checkpoint(checkpoint: str, scratch: Path) -> Path:
 
 
 def load_model(checkpoint: str):
-    """(model, state) of ``checkpoint`` (resolved by `resolve_pretrained`), downloaded first where it is not a file."""
+    """(model, state) of ``checkpoint`` (resolved by `resolve_pretrained`), downloaded first where it is not a file;
+    ``skinned``: the skinned transfer, no network (aniformer/skinned_transfer.py)."""
     from aniformer.checkpoint import model_from_checkpoint
+    from aniformer.skinned_transfer import REFERENCE, skinned_model
 
+    if checkpoint == REFERENCE:
+        return skinned_model()
     with tempfile.TemporaryDirectory(prefix="aniformer-animate-") as scratch:
         return model_from_checkpoint(local_checkpoint(checkpoint, Path(scratch)))
 

@@ -46,7 +46,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--clips", required=True, metavar="DIR", help="folder of driving clips, one sub-folder each")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (OUT/<target stem>/<clip>/)")
     p.add_argument("--checkpoint", default="pretrained", metavar="CKPT",
-                   help="as jobs/animate.py's: a file, an MLflow run id, a registered model, or 'pretrained' (default)")
+                   help="as jobs/animate.py's: a file, an MLflow run id, a registered model, 'pretrained' (default) or "
+                        "'skinned' (no network: Anny's skeleton fitted to every frame)")
     p.add_argument("--rig", action="store_true", help="also write rigged.glb and motion.bvh for every pair")
     p.add_argument("--bone-names", choices=("anny", "mixamo"), default="anny",
                    help="the rig's joint names, as jobs/animate.py's (default anny)")
@@ -85,16 +86,21 @@ def main(argv: list[str]) -> None:
     targets, clips = find_library(args.targets, args.clips)
     out = Path(args.out).expanduser().resolve()
     from aniformer.checkpoint import model_from_checkpoint, resolve_pretrained  # torch: after the arguments
+    from aniformer.skinned_transfer import REFERENCE as SKINNED
+    from aniformer.skinned_transfer import skinned_model
 
     checkpoint = resolve_pretrained(args.checkpoint)
     protect_inputs(out, {"--targets": args.targets, "--clips": args.clips, "--checkpoint": checkpoint})
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory")
     lock_output(out)  # one job per output; a rerun resumes in it
-    with tempfile.TemporaryDirectory(prefix="aniformer-retarget-") as scratch:
-        local = animate.local_checkpoint(checkpoint, Path(scratch))
-        model, state = model_from_checkpoint(local)  # a bad checkpoint: one line before Ray starts
-        blob = local.read_bytes()
+    if checkpoint == SKINNED:
+        (model, state), blob = skinned_model(), None
+    else:
+        with tempfile.TemporaryDirectory(prefix="aniformer-retarget-") as scratch:
+            local = animate.local_checkpoint(checkpoint, Path(scratch))
+            model, state = model_from_checkpoint(local)  # a bad checkpoint: one line before Ray starts
+            blob = local.read_bytes()
     registers = getattr(model.config, "output", "absolute") != "absolute"
     state = {"config": state["config"], "epoch": state.get("epoch")}
 

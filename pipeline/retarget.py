@@ -128,22 +128,27 @@ class Animator:
     def __init__(self):
         self.model = self.state = self.device = None
 
-    def _load(self, checkpoint: bytes) -> None:
+    def _load(self, checkpoint: bytes | None) -> None:
+        """The model of the checkpoint's bytes; None: the skinned transfer, no network."""
         import tempfile
 
         from aniformer.checkpoint import model_from_checkpoint
         from aniformer.cli.args import resolve_device
+        from aniformer.skinned_transfer import skinned_model
 
-        with tempfile.NamedTemporaryFile(suffix=".pt") as file:
-            file.write(checkpoint)
-            file.flush()
-            self.model, self.state = model_from_checkpoint(file.name)
+        if checkpoint is None:
+            self.model, self.state = skinned_model()
+        else:
+            with tempfile.NamedTemporaryFile(suffix=".pt") as file:
+                file.write(checkpoint)
+                file.flush()
+                self.model, self.state = model_from_checkpoint(file.name)
         self.device = resolve_device("auto")
 
     def animate(self, checkpoint: list[ray.ObjectRef], options: AnimateOptions, target: Mesh, clip: Clip, target_fit,
                 driver_fit):
         """`aniformer.animation_run.infer` for one pair (``options``: its animate options) with the shared
-        registrations: (the inference tuple, seconds, window), or `Refused`. ``checkpoint``: [its bytes' ref],
+        registrations: (the inference tuple, seconds), or `Refused`. ``checkpoint``: [its bytes' ref],
         fetched at the first call only."""
         import copy
 
@@ -161,7 +166,7 @@ class Animator:
         seconds["inference"] = round(time.perf_counter() - began, 3)
         if not inference.trust.ok and not options.force:
             return Refused(inference.trust.reason())
-        return inference, seconds, self.model.config.window
+        return inference, seconds
 
 
 @ray.remote(max_retries=MAX_RETRIES)
@@ -175,12 +180,12 @@ def write_pair(options: AnimateOptions, out: Path, state: dict, target: Mesh, cl
 
     from aniformer.animation_outputs import write_animation
 
-    inference, seconds, window = animated
+    inference, seconds = animated
     # writable arrays for the rig's fit (see `Writable`)
     inference = replace(inference, registrations=copy.deepcopy(inference.registrations))
     began = time.perf_counter()
     name = f"{Path(target.path).stem}_{Path(clip.path).name}"
-    write_animation(out, options, state, window, name, clip.fps, clip.driving, clip.faces, target.vertices,
+    write_animation(out, options, state, name, clip.fps, clip.driving, clip.faces, target.vertices,
                     target.faces, {"target": target.axis, "driver": clip.axis}, inference, seconds)
     return pair_row(out, "ok", seconds["inference"] + time.perf_counter() - began)
 
@@ -218,7 +223,7 @@ class Pair:
     options: AnimateOptions  # jobs/animate.py's options for this pair alone
 
 
-def schedule(pairs: list[Pair], targets: dict[str, str], clips: dict[str, str], options: dict, checkpoint: bytes,
+def schedule(pairs: list[Pair], targets: dict[str, str], clips: dict[str, str], options: dict, checkpoint: bytes | None,
              state: dict, registers: bool, actors: int, events):
     """Submit the whole graph for ``pairs`` (``targets``/``clips``: name -> path; ``options``: up, unit,
     max_vertices, max_frames) and yield ``(pair, row)`` as each pair finishes, row["status"] ok, refused or

@@ -122,6 +122,34 @@ def test_a_library_is_one_job_each_foreign_mesh_registered_once_and_a_pair_equal
 
 @pytest.mark.slow
 @pytest.mark.ray
+def test_the_skinned_transfer_runs_in_the_library_job_as_in_animate(library, ray_address, tmp_path, job_main):
+    """--checkpoint skinned: the actors fit Anny's skeleton instead of running a network, and the pair's frames
+    and record are the ones jobs/animate.py --checkpoint skinned writes alone."""
+    from aniformer.cli.exits import run
+
+    targets, clips = tmp_path / "targets", tmp_path / "clips"
+    targets.mkdir()
+    shutil.copy(library / "targets" / "anny.obj", targets)
+    shutil.copytree(library / "clips" / "crouch", clips / "crouch")
+    out = tmp_path / "library_out"
+    job = subprocess.run([*retarget_command(targets, clips, out), "--checkpoint", "skinned"],
+                         env=job_env(ray_address, tmp_path), capture_output=True, text=True, timeout=600)
+    assert job.returncode == 0, job.stderr[-3000:]
+    assert "1 of 1 ok" in job.stdout
+    alone = tmp_path / "alone"
+    run(job_main("animate"), ["--checkpoint", "skinned", "--target", str(targets / "anny.obj"), "--driving",
+                              str(clips / "crouch"), "--out", str(alone), "--no-progress"])
+    pair = out / "anny" / "crouch"
+    for name in sorted(p.name for p in (alone / "frames").iterdir()):
+        assert (alone / "frames" / name).read_bytes() == (pair / "frames" / name).read_bytes(), name
+    records = [json.loads((p / "animation.json").read_text()) for p in (alone, pair)]
+    assert records[0]["model"]["method"] == "skinned transfer" and records[0]["window"] == 4
+    assert [{k: v for k, v in r.items() if k != "seconds"} for r in records] == [
+        {k: v for k, v in records[0].items() if k != "seconds"}] * 2
+
+
+@pytest.mark.slow
+@pytest.mark.ray
 def test_a_broken_clip_fails_alone_and_a_rerun_after_ctrl_c_skips_the_complete_pairs(library, ray_address, tmp_path):
     """Ctrl-C after the first pair: exit 130, what is there is complete. The rerun skips those pairs (their
     files untouched), does the rest, gives the broken clip an error row with its one-line reason, and
