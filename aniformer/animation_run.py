@@ -216,8 +216,9 @@ def infer(options: AnimateOptions, model, state: dict, driving, driving_faces, t
     combine = options.combine if outputs == slice(None) else "center"
     window = config.window or len(driving)  # 0: the whole clip in one window (the skinned transfer)
     total = num_windows(len(driving), window, outputs, combine)
+    stage = "skinned fit" if config.output == "skinned" else "network"
     with tqdm(total=total, unit="window", desc="animate", disable=options.no_progress, file=sys.stderr) as bar, \
-            timed(seconds, "network"):
+            timed(seconds, stage):
         result = animate_sequence(model, model_driving, model_target, window=window, outputs=outputs,
                                   combine=combine, center=input_center, batch_size=options.batch_size, device=device,
                                   progress=bar.update, force=options.force)

@@ -57,7 +57,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help="checkpoint file, MLflow run id, registered model (models:/NAME/latest, models:/NAME/VERSION, "
                         "models:/NAME@ALIAS), 'pretrained' (the default: the shipped model, docs/model_card.md), or "
                         "'skinned': no network, Anny's skeleton fitted to every frame and played on the target's "
-                        "(5-10x closer on Anny-made ground truth, docs/results.md; ~0.5 s per frame on 2 cores)")
+                        "(6-24x closer than the shipped model on test clips, docs/results.md; ~0.6 s per frame on "
+                        "2 cores)")
     p.add_argument("--target", required=True, metavar="MESH", help="the mesh to animate (OBJ, PLY, ...)")
     p.add_argument("--driving", required=True, metavar="DIR_OR_GLOB", help="driving frames: a directory or a glob")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")

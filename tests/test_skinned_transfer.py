@@ -66,6 +66,7 @@ def test_animate_job_runs_the_skinned_transfer_in_place_of_a_network(tmp_path, j
     summary = json.loads((anim / "animation.json").read_text())
     assert summary["checkpoint"] == "skinned" and summary["model"]["method"] == "skinned transfer"
     assert (summary["window"], summary["windows"], summary["trust"]["ok"]) == (6, 1, True)
+    assert "skinned fit" in summary["seconds"] and "network" not in summary["seconds"]
 
     def frames(directory):
         return torch.from_numpy(center_bbox(np.stack([load_mesh(p)[0] for p in sorted(directory.glob("*.obj"))])))
