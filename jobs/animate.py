@@ -4,6 +4,7 @@
     python jobs/animate.py --checkpoint runs/tiny/best.pt --target me.obj --driving clips/jump/ --out anim/jump
     python jobs/animate.py --checkpoint 3f2a...c9 --target me.ply --driving 'clips/run/frame_*.obj' --out anim/run
     python jobs/animate.py --checkpoint models:/aniformer/latest --target me.obj --driving clips/jump/ --out anim/jump
+    python jobs/animate.py --checkpoint skinned --target me.obj --driving clips/jump/ --out anim/jump   # no network
 
 ``--driving`` is a directory of OBJ/PLY/... frames or a glob, in natural order (frame_2 before
 frame_10); every frame must have the first frame's vertices and faces. Target and driver may have

@@ -226,8 +226,9 @@ class Pair:
 def schedule(pairs: list[Pair], targets: dict[str, str], clips: dict[str, str], options: dict, checkpoint: bytes | None,
              state: dict, registers: bool, actors: int, events):
     """Submit the whole graph for ``pairs`` (``targets``/``clips``: name -> path; ``options``: up, unit,
-    max_vertices, max_frames) and yield ``(pair, row)`` as each pair finishes, row["status"] ok, refused or
-    error (with "error", one line). Each registration is reported to ``events(line)`` once it is made."""
+    max_vertices, max_frames; ``checkpoint``: its bytes, None for the skinned transfer) and yield ``(pair, row)``
+    as each pair finishes, row["status"] ok, refused or error (with "error", one line). Each registration is
+    reported to ``events(line)`` once it is made."""
     trained = (state["config"].get("data") or {}).get("topology")
     common = (options["up"], options["unit"], options["max_vertices"])
     target_refs = {name: load_target.remote(path, *common) for name, path in targets.items()
