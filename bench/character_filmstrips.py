@@ -6,9 +6,10 @@
 For one test pair (split ``characters``), the target as a y-up GLB, in a random pose and lying
 (``aniformer.synth.variants``), each driven by the same 24-frame clip of a decimated, shuffled body
 that starts mid-motion (``foreign_driver``). Each runs ``jobs/animate.py`` as a user would (its
-``--checkpoint``, the shipped model by default; ``--up auto``); a refused result is run again with ``--force`` to look at what the
-self-check kept from being written. Rows of each PNG: driver, target, result, ground truth; it prints
-each run's exit status, self-check and PMD beside copy-driver and the static target.
+``--checkpoint``, the shipped model by default; ``--up auto``); a refused result is run again with
+``--force`` to look at what the self-check kept from being written. Rows of each PNG: driver, target,
+result, ground truth; it prints each run's exit status, self-check and PMD beside copy-driver and the
+static target.
 """
 
 from __future__ import annotations

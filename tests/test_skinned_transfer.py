@@ -55,8 +55,8 @@ def test_animate_job_runs_the_skinned_transfer_in_place_of_a_network(tmp_path, j
     through the job: 1.56 against 51.0, the shipped model 34.9)."""
     import json
 
+    from aniformer.animate import driving_files, load_driving
     from aniformer.cli.exits import run
-    from aniformer.io.mesh import load_mesh
 
     clip, anim = tmp_path / "clip", tmp_path / "anim"
     run(job_main("export_meshes"), ["--stream", TOPOLOGY, "--split", "seen", "--frames", "6", "--out", str(clip)])
@@ -69,7 +69,7 @@ def test_animate_job_runs_the_skinned_transfer_in_place_of_a_network(tmp_path, j
     assert "skinned fit" in summary["seconds"] and "network" not in summary["seconds"]
 
     def frames(directory):
-        return torch.from_numpy(center_bbox(np.stack([load_mesh(p)[0] for p in sorted(directory.glob("*.obj"))])))
+        return torch.from_numpy(center_bbox(load_driving(driving_files(directory))[0]))
 
     truth = frames(clip / "ground_truth")
     error = float(pmd_per_frame(frames(anim / "frames"), truth).mean())
