@@ -5,12 +5,14 @@
 For each split and pair, ``jobs/export_meshes.py --stream notoes_collapse3pc`` writes a test clip (fresh bodies,
 ``--frames`` frames) with its ground truth; ``jobs/animate.py --checkpoint C --center`` animates its target with
 it; the OBJ frames it wrote are scored against the ground truth (PMD ×10⁻⁴, both bounding-box centred) beside
-copy-driver and the static target. Prints one line per clip and a Markdown row per split: mean ± sd over pairs.
+the deformation transfer alone (sliding its 3-frame window over the clip, as jobs/evaluate.py's row), copy-driver
+and the static target. Prints one line per clip and a Markdown row per split: mean ± sd over pairs.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from aniformer.animate import driving_files, load_driving
+from aniformer.animate import animate_sequence, driving_files, load_driving
+from aniformer.evaluate import TRANSFER, transfer_contender
 from aniformer.geometry import center_bbox
 from aniformer.io.mesh import load_mesh
 from aniformer.metrics import PMD_SCALE, pmd
@@ -46,7 +49,7 @@ def score_clip(work: Path, split: str, pair: int, frames: int, checkpoints: list
              str(frames), "--out", str(clip))
     truth, _ = load_driving(driving_files(clip / "ground_truth"))
     driving, _ = load_driving(driving_files(clip / "driving"))
-    target, _ = load_mesh(clip / "target.obj")
+    target, faces = load_mesh(clip / "target.obj")
     scores = {}
     for checkpoint in checkpoints:
         out = work / "anim" / checkpoint / f"{split}-{pair}"
@@ -54,6 +57,10 @@ def score_clip(work: Path, split: str, pair: int, frames: int, checkpoints: list
              str(clip / "driving"), "--out", str(out), "--center", "--overwrite", "--no-progress", "--no-glb",
              "--preview-frames", "0")
         scores[checkpoint] = _pmd(load_driving(driving_files(out / "frames"))[0], truth)
+    transfer = transfer_contender(3)
+    faces = torch.from_numpy(np.asarray(faces, np.int64))
+    scores[TRANSFER] = _pmd(animate_sequence(functools.partial(transfer.predict, faces=faces), driving, target,
+                                             window=transfer.window, outputs=transfer.frames), truth)
     scores["copy-driver"] = _pmd(driving, truth)
     scores["static target"] = _pmd(np.broadcast_to(target, truth.shape), truth)
     return scores
