@@ -259,7 +259,7 @@ class BodyFit:
 
 
 def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
-                 steps: tuple[int, int, int] = (50, 110, 100), orientations: torch.Tensor | None = None,
+                 steps: tuple[int, int, int] = (50, 300, 100), orientations: torch.Tensor | None = None,
                  seed: int = 0) -> BodyFit:
     """Anny at ``topology`` fitted onto a mesh in any orientation and pose (see ``BodyFit``).
 
@@ -267,7 +267,8 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
     assignment of hands and feet (``SIDES``), and the rest pose in each of ``orientations`` (default:
     ``orientation_hypotheses``). The ``KEEP`` of least Chamfer distance go on at ``topology``, and
     the best of them gets small smooth per-vertex offsets. ``steps``: of the coarse round, of the
-    kept ones, of the offsets."""
+    kept ones (300, not 110: 0.8x the template error on validation bodies, 1.56x the time; docs/results.md),
+    of the offsets."""
     mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), faces, process=False)
     centre = (mesh.bounds[0] + mesh.bounds[1]) / 2
     samples, sample_faces = trimesh.sample.sample_surface(mesh, MESH_SAMPLES, seed=seed)
@@ -369,7 +370,7 @@ def cached_fit(vertices: np.ndarray, faces: np.ndarray, topology: str, **options
     """``fit_template``'s fit of this mesh, loaded from ``fit_cache_dir`` if this code fitted the same mesh
     (its vertices, faces, topology and ``options``) before, else fitted and kept there: (the fit, whether it
     was loaded). The fit is deterministic, so a kept one is the same bytes a new fit would be; a character
-    animated with clip after clip is registered once (18 s at 18k vertices on 2 cores)."""
+    animated with clip after clip is registered once (24 s at 18k vertices on 2 cores)."""
     path = fit_cache_dir() / "registrations" / f"{_fit_key(vertices, faces, topology, options)}.npz"
     try:
         with np.load(path, allow_pickle=False) as kept:
