@@ -143,10 +143,11 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
 
 
 def write_animation(out: Path, options: AnimateOptions, state: dict, name: str, fps: float, driving,
-                    driving_faces, target, target_faces, axes: dict, inference: Inference, seconds: dict,
+                    driving_faces, target, target_faces, axes: dict, units: dict, inference: Inference, seconds: dict,
                     objs_process: bool = False) -> dict:
     """Place the inferred frames in the world, then `write_outputs` into
-    ``out`` with their animation.json record (returned); ``objs_process``: see `write_outputs`."""
+    ``out`` with their animation.json record (returned), in ``options.unit`` (the target's; ``units``: {role:
+    (unit, why)} as read); ``objs_process``: see `write_outputs`."""
     from aniformer.animate import root_motion
 
     local = inference.frames
@@ -162,6 +163,7 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, name: str, 
                               "fit_cached": fit.fit_cached}
                        for role, fit in registrations.items()},
         "up": {role: {"axis": axis, "why": why} for role, (axis, why) in axes.items()},
+        "units": {role: {"unit": unit, "why": why} for role, (unit, why) in units.items()},
         "trust": inference.trust.to_dict(),
         "output_centred": options.center,
         "model": state["config"].get("model", {}), "epoch": state.get("epoch"),

@@ -11,7 +11,7 @@ import functools
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from aniformer.errors import UserError
@@ -76,20 +76,23 @@ def anny_topology(vertices, faces) -> str | None:
 
 
 def load_inputs(options: AnimateOptions):
-    """(driving frame files, target vertices and faces, fps, name), all checked before any work (and before
-    anything is written): frame count, the target mesh, the size the GLB would have."""
+    """(driving frame files, target vertices and faces, fps, name, {role: (unit, why)} of the target and the
+    driver: ``--unit``, else the one their size is a body's in), all checked before any work (and before
+    anything is written): frame count, the target mesh, the units, the size the GLB would have."""
     from aniformer.animate import driving_files, driving_fps
-    from aniformer.io.mesh import load_mesh
+    from aniformer.io.mesh import file_unit, load_mesh
 
     files = driving_files(options.driving)
     if len(files) > options.max_frames:
         raise UserError(f"--driving {options.driving}: {len(files):,} frames exceeds --max-frames "
                         f"{options.max_frames:,}")
-    target, target_faces = load_mesh(options.target, max_vertices=options.max_vertices, unit=options.unit)
+    units = {"target": file_unit(options.unit, options.target)}
+    target, target_faces = load_mesh(options.target, max_vertices=options.max_vertices, unit=units["target"][0])
     fps = options.fps or driving_fps(files) or 30.0
     name = options.name or f"{Path(options.target).stem}_{files[0].parent.name}"
     check_glb_size(options, len(files), target, target_faces)
-    return files, target, target_faces, fps, name
+    units["driver"] = file_unit(options.unit, files[0])
+    return files, target, target_faces, fps, name, units
 
 
 def check_glb_size(options: AnimateOptions, frames: int, target, target_faces) -> None:
@@ -249,11 +252,12 @@ def animate_files(options: AnimateOptions, inputs: tuple, out: Path, device, loa
     from aniformer.animation_outputs import write_animation  # it imports this module
     from aniformer.geometry import to_z_up
 
-    files, target, target_faces, fps, name = inputs
+    files, target, target_faces, fps, name, units = inputs
+    options = replace(options, unit=units["target"][0])  # outputs are written in the target's unit
     model, state = load_model()
     with tqdm(total=len(files), unit="frame", desc="load driving", disable=options.no_progress,
               file=sys.stderr) as bar:
-        driving, driving_faces = load_driving(files, options.max_vertices, options.unit, progress=bar.update)
+        driving, driving_faces = load_driving(files, options.max_vertices, units["driver"][0], progress=bar.update)
     axes = input_axes(options, files, target_faces, target, driving, driving_faces)
     target, driving = to_z_up(target, axes["target"][0]), to_z_up(driving, axes["driver"][0])
     loaded = time.perf_counter()
@@ -267,5 +271,5 @@ def animate_files(options: AnimateOptions, inputs: tuple, out: Path, device, loa
     inferred = time.perf_counter()
     seconds["inference"] = round(inferred - loaded, 3)
     summary = write_animation(out, options, state, name, fps, driving, driving_faces, target, target_faces, axes,
-                              inference, seconds, objs_process=True)
+                              units, inference, seconds, objs_process=True)
     return summary, trust, inferred - loaded

@@ -13,8 +13,9 @@ registered onto it (aniformer/registration.py: Anny's body fitted to the mesh, a
 result is carried back to the mesh's own vertices). The model runs on the driver's topology when
 that is one of Anny's, else on the checkpoint's (``--template``); a driver that is not an Anny
 mesh is registered on up to three frames spread over the clip. Inputs are human bodies in any
-pose and orientation, z or y up (``--up``), in ``--unit`` (default m); a result the self-check
-does not trust is refused (``--force`` writes it anyway). A T-frame window slides over the sequence
+pose and orientation, z or y up (``--up``), in m, cm or mm (``--unit``, default auto: told apart
+by the body's size); a result the self-check does not trust is refused (``--force`` writes it
+anyway). A T-frame window slides over the sequence
 one frame at a time; overlapping predictions of a frame are averaged (``--combine mean``) or the
 window centred on it is used (``--combine center``, always for a regression-head model); see
 docs/animate.md. The result is placed in world space where the driver is (its root motion, scaled
@@ -66,7 +67,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--fps", type=float, default=None,
                    help=f"frame rate of the sequence (default: the driver's, from {' or '.join(FPS_SIDECARS)} "
                         "beside its frames, else 30)")
-    p.add_argument("--unit", choices=tuple(UNITS), default="m", help="unit of the target and driving files (default m)")
+    p.add_argument("--unit", choices=("auto", *UNITS), default="auto",
+                   help="unit of the target and driving files (default auto: for each, the one of m, cm, mm its "
+                        "body's size is a human's in); outputs are written in the target's")
     p.add_argument("--up", choices=("auto", *UP_AXES), default="auto",
                    help="the axis the inputs stand along (default auto: the axis the body stands along, else the "
                         "format's: y for glTF, z for the others); outputs are written in the target's axes")
@@ -153,6 +156,9 @@ def main(argv: list[str]) -> None:
     print(f"animated {frames} frames ({summary['target_vertices']:,}-vertex target, {summary['driving_vertices']:,}-vertex "
           f"driver, T={summary['window']}, {summary['windows']} windows, combine={summary['combine']}) in {seconds:.1f} s "
           f"(inference {inference:.1f} s)")
+    for role, unit in summary["units"].items():
+        if unit["unit"] != "m":
+            print(f"read the {role} in {unit['unit']} ({unit['why']}); outputs in the target's unit")
     print(f"frames: {out / 'frames'}/ ({frames} OBJ)")
     if not args.no_glb:
         print(f"animation: {out / 'animation.glb'} ({frames} frames at {fps:g} fps, {frames / fps:.2f} s)")

@@ -52,7 +52,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--bone-names", choices=("anny", "mixamo"), default="anny",
                    help="the rig's joint names, as jobs/animate.py's (default anny)")
     p.add_argument("--force", action="store_true", help="write results the self-check does not trust")
-    p.add_argument("--unit", choices=tuple(UNITS), default="m", help="unit of every input file (default m)")
+    p.add_argument("--unit", choices=("auto", *UNITS), default="auto",
+                   help="unit of every input file (default auto: each file's, from its body's size, as jobs/animate.py)")
     p.add_argument("--up", choices=("auto", *UP_AXES), default="auto", help="the inputs' up axis (default auto)")
     p.add_argument("--max-vertices", type=int, default=DEFAULT_MAX_VERTICES,
                    help=f"refuse meshes with more vertices (default {DEFAULT_MAX_VERTICES:,})")

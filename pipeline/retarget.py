@@ -39,23 +39,25 @@ class Writable:
 
 @dataclass(frozen=True)
 class Mesh(Writable):
-    """A target read once: z-up vertices, faces, and its (up axis, why)."""
+    """A target read once: z-up vertices in metres, faces, its (up axis, why) and (unit, why)."""
 
     path: str
     vertices: np.ndarray
     faces: np.ndarray
     axis: tuple[str, str]
+    unit: tuple[str, str]
 
 
 @dataclass(frozen=True)
 class Clip(Writable):
-    """A driving clip read once: z-up frames (T, V, 3), faces, fps, (up axis, why)."""
+    """A driving clip read once: z-up frames (T, V, 3) in metres, faces, fps, (up axis, why), (unit, why)."""
 
     path: str
     driving: np.ndarray
     faces: np.ndarray
     fps: float
     axis: tuple[str, str]
+    unit: tuple[str, str]
 
 
 @dataclass(frozen=True)
@@ -70,12 +72,13 @@ def load_target(path: str, up: str, unit: str, max_vertices: int):
     """(its Anny topology or None, the `Mesh`)."""
     from aniformer.animation_run import anny_topology, input_axis
     from aniformer.geometry import to_z_up
-    from aniformer.io.mesh import load_mesh
+    from aniformer.io.mesh import file_unit, load_mesh
 
-    vertices, faces = load_mesh(path, max_vertices=max_vertices, unit=unit)
+    unit = file_unit(unit, path)
+    vertices, faces = load_mesh(path, max_vertices=max_vertices, unit=unit[0])
     axis = input_axis(up, Path(path), vertices[None], faces)
     vertices = to_z_up(vertices, axis[0])
-    return anny_topology(vertices, faces), Mesh(path, vertices, faces, axis)
+    return anny_topology(vertices, faces), Mesh(path, vertices, faces, axis, unit)
 
 
 @ray.remote(num_returns=2, max_retries=MAX_RETRIES)
@@ -85,17 +88,19 @@ def load_clip(path: str, up: str, unit: str, max_vertices: int, max_frames: int,
     from aniformer.animation_run import anny_topology, input_axis
     from aniformer.errors import UserError
     from aniformer.geometry import to_z_up
+    from aniformer.io.mesh import file_unit
 
     files = driving_files(path)
     if len(files) > max_frames:
         raise UserError(f"{path}: {len(files):,} frames exceeds --max-frames {max_frames:,}")
-    driving, faces = load_driving(files, max_vertices, unit)
+    unit = file_unit(unit, files[0])
+    driving, faces = load_driving(files, max_vertices, unit[0])
     axis = input_axis(up, files[0], driving, faces)
     driving = to_z_up(driving, axis[0])
     anny = anny_topology(driving[0], faces)
     # the topology the model runs on for this clip, as aniformer.animation_run.model_inputs chooses it
     info = {"frames": len(driving), "anny": anny, "topology": anny or trained_topology}
-    return info, Clip(path, driving, faces, driving_fps(files) or 30.0, axis)
+    return info, Clip(path, driving, faces, driving_fps(files) or 30.0, axis, unit)
 
 
 @ray.remote(num_returns=2, max_retries=MAX_RETRIES)
@@ -185,8 +190,9 @@ def write_pair(options: AnimateOptions, out: Path, state: dict, target: Mesh, cl
     inference = replace(inference, registrations=copy.deepcopy(inference.registrations))
     began = time.perf_counter()
     name = f"{Path(target.path).stem}_{Path(clip.path).name}"
-    write_animation(out, options, state, name, clip.fps, clip.driving, clip.faces, target.vertices,
-                    target.faces, {"target": target.axis, "driver": clip.axis}, inference, seconds)
+    write_animation(out, replace(options, unit=target.unit[0]), state, name, clip.fps, clip.driving, clip.faces,
+                    target.vertices, target.faces, {"target": target.axis, "driver": clip.axis},
+                    {"target": target.unit, "driver": clip.unit}, inference, seconds)
     return pair_row(out, "ok", seconds["inference"] + time.perf_counter() - began)
 
 

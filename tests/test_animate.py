@@ -478,7 +478,9 @@ def test_animate_job_end_to_end(inputs, tmp_path, capsys, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["anim"]  # no staging directory left behind
 
 
-def test_animate_job_centred_named_in_centimetres_at_the_drivers_fps(inputs, tmp_path):
+@pytest.mark.parametrize("unit", ["cm", "auto"])
+def test_animate_job_centred_named_in_centimetres_at_the_drivers_fps(inputs, tmp_path, unit):
+    """Inputs authored in centimetres, said (``--unit cm``) or told by their size (``auto``, the default)."""
     drv = tmp_path / "clip"
     seq, faces = driving_sequence(4)
     for k, vertices in enumerate(seq * 100):  # authored in centimetres
@@ -487,7 +489,10 @@ def test_animate_job_centred_named_in_centimetres_at_the_drivers_fps(inputs, tmp
     target = write_obj(tmp_path / "t.obj", body(3)[0] * 100, body(3)[1])
     out = tmp_path / "o"
     animate_main(["--checkpoint", inputs["checkpoint"], "--target", target, "--driving", drv, "--out", out,
-                  "--unit", "cm", "--center", "--name", "hero", "--no-progress", "--preview-frames", 0, "--force"])
+                  "--unit", unit, "--center", "--name", "hero", "--no-progress", "--preview-frames", 0, "--force"])
+    summary = json.loads((out / "animation.json").read_text())
+    assert summary["unit"] == "cm" and {role: u["unit"] for role, u in summary["units"].items()} == {
+        "target": "cm", "driver": "cm"}
     back = read_glb(out / "animation.glb")
     assert back["duration"] == pytest.approx(4 / 50) and back["gltf"]["nodes"][0]["name"] == "hero"
     assert "translation" not in back["gltf"]["nodes"][0]
@@ -586,10 +591,14 @@ BAD_CASES = {
     "mixed vertex counts": lambda r, i: ({"driving": _driver_then(r, *body(1))}, [], "frame_2.obj: 42 vertices"),
     "other faces": lambda r, i: ({"driving": _driver_then(r, body(2)[0], np.roll(body(2)[1], 1, axis=0))}, [],
                                  "frame_2.obj: other faces than the first driving frame"),
-    "huge coordinates": lambda r, i: ({"target": _write(r / "t.obj", TRIANGLE.format("1e30", 3))}, [],
+    "huge coordinates": lambda r, i: ({"target": _write(r / "t.obj", TRIANGLE.format("1e30", 3))}, ["--unit", "m"],
                                       "reaches 1e+30 m"),
-    "centimetres read as metres": lambda r, i: (
-        {"target": _write(r / "t.obj", "v 0 0 0\nv 0 0 1700\nv 0 1 0\nf 1 2 3\n")}, [], "wrong --unit?"),
+    "huge coordinates, unit auto": lambda r, i: ({"target": _write(r / "t.obj", TRIANGLE.format("1e30", 3))}, [],
+                                                 "1e+30 units across, a human body's size in none of m, cm, mm"),
+    "no human size in any unit": lambda r, i: (
+        {"target": _write(r / "t.obj", "v 0 0 0\nv 0 0 17\nv 0 1 0\nf 1 2 3\n")}, [], "17 units across"),
+    "millimetres read as metres": lambda r, i: (
+        {"target": _write(r / "t.obj", "v 0 0 0\nv 0 0 1700\nv 0 1 0\nf 1 2 3\n")}, ["--unit", "m"], "wrong --unit?"),
     "bad unit": lambda r, i: ({}, ["--unit", "inch"], "invalid choice: 'inch'"),
     "bad fps sidecar": lambda r, i: ({"driving": _driver_with(r, "sequence.json", '{"fps": "fast"}')}, [],
                                      "fps must be a positive number"),

@@ -6,7 +6,7 @@ import trimesh
 
 from aniformer.errors import MeshError
 from aniformer.geometry import center_bbox, shuffle_vertices
-from aniformer.io.mesh import load_mesh, save_mesh, validate_mesh
+from aniformer.io.mesh import file_unit, load_mesh, save_mesh, validate_mesh
 
 
 @pytest.fixture
@@ -102,6 +102,28 @@ def test_units_scale_to_metres_and_absurd_coordinates_are_refused(tmp_path):
     (tmp_path / "bad.obj").write_text("v 0 0 zero\n")
     with pytest.raises(MeshError, match="line 1 is not a valid OBJ 'v' line"):
         load_mesh(tmp_path / "bad.obj")
+
+
+@pytest.mark.parametrize(("height", "unit"), [(0.45, "m"), (1.7, "m"), (2.9, "m"), (45, "cm"), (170, "cm"),
+                                              (290, "cm"), (450, "mm"), (1700, "mm"), (2900, "mm")])
+def test_a_body_files_unit_is_the_one_its_size_is_a_humans_in(tmp_path, height, unit):
+    """``--unit auto``: a crouching child to a tall adult, in each of m, cm and mm, read in that unit; the
+    largest extent counts (a body lying along x, here)."""
+    path = tmp_path / "body.obj"
+    path.write_text(f"v 0 0 0\nv {height} 0 0\nv 0 {height / 4} 0.1\nf 1 2 3\n")
+    assert file_unit("auto", path)[0] == unit
+    assert file_unit("cm", path) == ("cm", "--unit")  # a unit given is taken as it is
+    assert np.ptp(load_mesh(path, unit=file_unit("auto", path)[0])[0], axis=0).max() == pytest.approx(
+        height * {"m": 1, "cm": 0.01, "mm": 0.001}[unit])
+
+
+@pytest.mark.parametrize("height", [0.1, 10, 35, 350, 5000])
+def test_a_body_file_of_no_humans_size_in_any_unit_asks_for_the_unit(tmp_path, height):
+    path = tmp_path / "body.obj"
+    path.write_text(f"v 0 0 0\nv 0 0 {height}\nv 0 0.01 0\nf 1 2 3\n")
+    with pytest.raises(MeshError, match=rf"body\.obj: {height:g} units across, a human body's size in none of "
+                                        r"m, cm, mm \(0\.4-3\.0 m\): pass --unit"):
+        file_unit("auto", path)
 
 
 OBJ_TEXTS = {  # the numpy reader takes the first five; the rest go line by line, with the same result

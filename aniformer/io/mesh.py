@@ -4,7 +4,8 @@ Vertices are `(V, 3)` float32 in metres (z up), faces `(F, 3)` int64. Files with
 polygons are triangulated on load (fanned); anything else that is not a usable triangle mesh is
 refused with a one-line `MeshError`. OBJ files are read here, not by trimesh, because trimesh's
 OBJ loader drops vertices that no face references (even with ``process=False``): every ``v`` line
-is kept, in file order. Files in centimetres or millimetres are scaled to metres by ``unit``.
+is kept, in file order. Files in centimetres or millimetres are scaled to metres by ``unit``;
+`file_unit` tells m, cm and mm apart by a body's size.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from aniformer.io.files import atomic_path
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
 DEFAULT_MAX_VERTICES = 2_000_000
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per file unit
+HUMAN_EXTENT = (0.4, 3.0)  # metres: a body's largest extent, a crouching child's to a tall adult's arm span
 MAX_COORDINATE = 1e3  # metres; beyond this a mesh is in another unit or broken (the model saturates)
 
 
@@ -116,7 +118,30 @@ def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def load_mesh(path: str | os.PathLike, max_vertices: int = DEFAULT_MAX_VERTICES,
               unit: str = "m") -> tuple[np.ndarray, np.ndarray]:
     """Read a mesh file in ``unit`` (m, cm, mm) -> (vertices (V, 3) float32 metres, faces (F, 3) int64), validated."""
-    path = Path(path)
+    vertices, faces = _read_mesh(Path(path))
+    vertices = vertices * UNITS[unit]
+    validate_mesh(vertices, faces, str(path), max_vertices)
+    return vertices.astype(np.float32), faces
+
+
+def file_unit(unit: str, path: str | os.PathLike) -> tuple[str, str]:
+    """(the unit of a body's mesh file, why): ``unit`` as given, or for ``"auto"`` the one of m, cm and mm in
+    which the body's largest extent is a human's (``HUMAN_EXTENT``; the three ranges do not overlap), `MeshError` if none is."""
+    if unit != "auto":
+        return unit, "--unit"
+    vertices, _ = _read_mesh(Path(path))
+    extent = float(np.ptp(vertices, axis=0).max()) if len(vertices) else float("nan")
+    if not np.isfinite(extent):
+        return "m", "not measurable: the mesh is refused as it is"  # load_mesh names what is wrong with it
+    fitting = [name for name, metres in UNITS.items() if HUMAN_EXTENT[0] <= extent * metres <= HUMAN_EXTENT[1]]
+    if not fitting:
+        raise MeshError(f"{path}: {extent:.4g} units across, a human body's size in none of m, cm, mm "
+                        f"({HUMAN_EXTENT[0]}-{HUMAN_EXTENT[1]} m): pass --unit")
+    return fitting[0], f"{extent:.4g} units across: {extent * UNITS[fitting[0]]:.2f} m in {fitting[0]}"
+
+
+def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh file's vertices in its own unit (float64) and faces, or a one-line `MeshError`."""
     if not path.is_file():
         raise MeshError(f"{path}: no such file")
     if path.suffix.lower() not in MESH_SUFFIXES:
@@ -127,9 +152,7 @@ def load_mesh(path: str | os.PathLike, max_vertices: int = DEFAULT_MAX_VERTICES,
         vertices, faces = read_obj(path) if path.suffix.lower() == ".obj" else _read_with_trimesh(path)
     except OSError as e:
         raise MeshError(f"{path}: cannot read mesh ({e.strerror})") from None
-    vertices = vertices * UNITS[unit]
-    validate_mesh(vertices, faces, str(path), max_vertices)
-    return vertices.astype(np.float32), faces
+    return vertices, faces
 
 
 def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> Path:
