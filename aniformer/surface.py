@@ -44,7 +44,15 @@ def closest_points(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) 
 
 
 def _edge_graph(vertices: np.ndarray, faces: np.ndarray) -> scipy.sparse.csr_matrix:
+    """The mesh's edges weighted by length, and its vertices split at UV seams or hard edges (several vertices at
+    one position, as glTF exports write them) joined to the first of their position: one place on the surface."""
     i, j = mesh_edges(faces, len(vertices))
+    _, place = np.unique(vertices, axis=0, return_inverse=True)
+    place = place.reshape(-1)
+    first = np.empty(place.max() + 1, np.int64)
+    first[place[::-1]] = np.arange(len(vertices))[::-1]  # each position's first vertex
+    split = np.flatnonzero(first[place] != np.arange(len(vertices)))
+    i, j = np.concatenate([i, split]), np.concatenate([j, first[place[split]]])
     lengths = np.linalg.norm(vertices[i] - vertices[j], axis=1) + 1e-12  # 0 would read as no edge
     return scipy.sparse.coo_matrix((lengths, (i, j)), shape=(len(vertices),) * 2).tocsr()
 

@@ -65,6 +65,7 @@ VARIANTS: dict[str, str] = {
     "rotated": "posed, turned by a uniformly random rotation",
     "lying": "Anny's full body decimated, turned 90° about a random horizontal axis",
     "glb": "Anny's full body decimated, through a y-up GLB file",
+    "seams": "Anny's full body decimated, its vertices split at UV seams into 8 islands, through a y-up GLB file",
     "parts": "Anny's full body decimated, with eyeballs and teeth as separate parts",
     "dense": "Anny's full body subdivided past 50,000 vertices, shuffled",
     "foreign_driver": "the training topology driven by a 24-frame clip of a decimated, shuffled body",
@@ -72,7 +73,8 @@ VARIANTS: dict[str, str] = {
 OTHER_TOPOLOGY = {"notoes_collapse3pc": "notoes_collapse10pc"}  # else notoes_collapse3pc
 FULL_TOPOLOGY = "notoes"
 REMESH_FACES = 3000
-CARRIED = ("posed", "rotated", "lying", "glb", "parts")
+CARRIED = ("posed", "rotated", "lying", "glb", "seams", "parts")
+SEAM_HEIGHTS = (0.3, 0.5, 0.8)  # of the body's height: islands below, between and above, each split left and right
 DENSE_VERTICES = 50_000
 DENSE_REFINED_FACES = 1000  # the largest faces subdivided a second time: 49,082 vertices once, past 50,000 then
 DRIVER_FRAMES = 24
@@ -175,6 +177,25 @@ def posed_character(stream: StreamPairs, split: str, epoch: int, index: int,
     vertices, faces = remesh(rest[0], full.faces)
     character = AttachedPoints.attach(vertices, rest[0], full.faces).on(full.pose(identity, pose)[0], full.faces)
     return character, faces, _body_model(topology).pose(identity, pose)[0]
+
+
+def split_at_seams(vertices: np.ndarray, faces: np.ndarray, islands: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh as a glTF exporter writes it with UV seams between face ``islands``: each island its own copies
+    of its vertices (the same positions). (vertices, faces, each new vertex's original)."""
+    pieces, new_faces, origin = [], [], []
+    for k in np.unique(islands):
+        used = np.unique(faces[islands == k])
+        renumber = np.full(len(vertices), -1)
+        renumber[used] = np.arange(len(used)) + sum(map(len, origin))
+        pieces.append(vertices[used]), new_faces.append(renumber[faces[islands == k]]), origin.append(used)
+    return np.concatenate(pieces), np.concatenate(new_faces), np.concatenate(origin)
+
+
+def seam_islands(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Per face of an upright z-up body, its island: by height (``SEAM_HEIGHTS``) and side (x)."""
+    centres = vertices[faces].mean(1)
+    height = (centres[:, 2] - vertices[:, 2].min()) / np.ptp(vertices[:, 2])
+    return np.digitize(height, SEAM_HEIGHTS) * 2 + (centres[:, 0] > np.median(vertices[:, 0]))
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -292,6 +313,8 @@ def variant_pairs(stream: StreamPairs, split: str, epoch: int, indices: Sequence
                 if variant == "parts":
                     part_points, part_faces = extra_parts(heads[b])
                     points, faces = np.concatenate([points, part_points]), np.concatenate([faces, part_faces + len(points)])
+                elif variant == "seams":
+                    points, faces, _ = split_at_seams(points, faces, seam_islands(points, faces))
                 carry = AttachedPoints.attach(points, rest[b], full.faces)
                 full_target = posed[b] if variant in ("posed", "rotated") else target
                 target, truth, drive = (carry.on(x, full.faces) for x in (full_target, truth, drive))
@@ -299,7 +322,7 @@ def variant_pairs(stream: StreamPairs, split: str, epoch: int, indices: Sequence
                     rng = _generator(stream.seed, f"{variant}-target", *keys)
                     turn = random_rotation(rng) if variant == "rotated" else lying_rotation(rng)
                     target = (target @ turn.T).astype(np.float32)
-                elif variant == "glb":
+                elif variant in ("glb", "seams"):
                     target = glb_round_trip(target, faces)
             pair[variant] = _case(target, faces, truth, drive)
         pairs.append(pair)
