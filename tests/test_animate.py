@@ -426,6 +426,24 @@ def test_preview_mesh_decimates_every_frame_alike():
     assert np.abs(np.linalg.norm(decimated[0], axis=1) - 1).max() < 0.01  # on the sphere
 
 
+def test_preview_of_a_mesh_split_at_seams_stays_closed():
+    """A closed sphere written with its vertices split at seams (8 islands) is decimated whole for the preview:
+    no edge of the drawn mesh is open, as none of the sphere's is (split apart, each island's rim was decimated
+    on its own and the preview showed the background through cracks)."""
+    from aniformer.io.render import preview_mesh
+    from aniformer.synth.variants import split_at_seams
+
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    centres = sphere.triangles_center
+    islands = (centres[:, 0] > 0) * 4 + (centres[:, 1] > 0) * 2 + (centres[:, 2] > 0)
+    vertices, faces, _ = split_at_seams(np.asarray(sphere.vertices), np.asarray(sphere.faces), islands)
+    assert len(vertices) > len(sphere.vertices)
+    decimated, drawn = preview_mesh(vertices[None], faces, 500)
+    edges = np.sort(drawn[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, uses = np.unique(edges, axis=0, return_counts=True)
+    assert len(drawn) <= 500 and (uses == 2).all()
+
+
 # --------------------------------------------------------------------------------------------
 # jobs/animate.py
 # --------------------------------------------------------------------------------------------

@@ -125,7 +125,9 @@ def preview_mesh(frames: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple
     from aniformer.surface import closest_points
 
     first = np.asarray(frames[0], np.float64)
-    decimated = trimesh.Trimesh(first, faces, process=False).simplify_quadric_decimation(face_count=max_faces)
+    whole = trimesh.Trimesh(first, faces, process=False)
+    whole.merge_vertices()  # vertices split at seams: decimated apart, their edges were torn open in the preview
+    decimated = whole.simplify_quadric_decimation(face_count=max_faces)
     return closest_points(decimated.vertices, first, faces).on(frames, faces), np.asarray(decimated.faces, np.int64)
 
 
