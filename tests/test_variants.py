@@ -39,12 +39,12 @@ def test_new_variants_are_foreign_meshes_whose_ground_truth_is_the_target_in_its
     """One pair of every new variant: foreign vertex counts with valid faces, ground truth and copy-driver
     on the target's vertices; where the driving window holds the target's own pose the ground truth
     is the target (through a GLB file, vertices in order), up to a rigid turn for ``rotated`` and
-    ``lying``, which lies (its long axis horizontal); ``seams`` is ``glb``'s mesh in 8 islands that touch only
-    by position, copies moving as one; ``parts`` adds three separate parts; ``dense``
+    ``lying``, which lies (its long axis horizontal); ``seams`` is ``posed``'s mesh in 8 islands that touch
+    only by position, copies moving as one; ``parts`` adds three separate parts; ``dense``
     passes 50,000 vertices; ``foreign_driver`` drives the model's topology with a longer clip of its own."""
     stream = TargetPosesFirst(TOPOLOGY, window=3, seed=0)
     (pair,) = variant_pairs(stream, "characters", 0, [0], NEW_VARIANTS)
-    frame_of_target = {"posed": 1, "rotated": 1, "lying": 0, "glb": 0, "seams": 0, "parts": 0, "dense": 0,
+    frame_of_target = {"posed": 1, "rotated": 1, "lying": 0, "glb": 0, "seams": 1, "parts": 0, "dense": 0,
                        "foreign_driver": 0}
     for variant in NEW_VARIANTS:
         case = pair[variant]
@@ -64,11 +64,11 @@ def test_new_variants_are_foreign_meshes_whose_ground_truth_is_the_target_in_its
     on_parts = parts["faces"] >= len(posed["target"])
     assert (on_parts.all(1) | ~on_parts.any(1)).all()  # no face joins a part to the body
     assert len(trimesh.Trimesh(parts["target"], parts["faces"][on_parts.all(1)], process=False).split(only_watertight=False)) == 3
-    seams, glb = pair["seams"], pair["glb"]
+    seams = pair["seams"]
     pieces = trimesh.Trimesh(seams["target"], seams["faces"], process=False).split(only_watertight=False)
     assert len(pieces) >= 8  # an island's faces need not all touch
     position, place = np.unique(seams["target"], axis=0, return_inverse=True)
-    assert len(seams["target"]) > len(position) == len(glb["target"])  # the same places, some written twice
+    assert len(seams["target"]) > len(position) == len(posed["target"])  # the same places, some written twice
     for frames in (seams["ground_truth"], seams["copy_driver"]):
         np.testing.assert_array_equal(frames, frames[:, np.unique(place.reshape(-1), return_index=True)[1]][:, place.reshape(-1)])
     assert len(pair["dense"]["target"]) > DENSE_VERTICES

@@ -65,7 +65,7 @@ VARIANTS: dict[str, str] = {
     "rotated": "posed, turned by a uniformly random rotation",
     "lying": "Anny's full body decimated, turned 90° about a random horizontal axis",
     "glb": "Anny's full body decimated, through a y-up GLB file",
-    "seams": "Anny's full body decimated, its vertices split at UV seams into 8 islands, through a y-up GLB file",
+    "seams": "posed, its vertices split at UV seams into 8 islands (of the rest pose), through a y-up GLB file",
     "parts": "Anny's full body decimated, with eyeballs and teeth as separate parts",
     "dense": "Anny's full body subdivided past 50,000 vertices, shuffled",
     "foreign_driver": "the training topology driven by a 24-frame clip of a decimated, shuffled body",
@@ -279,7 +279,7 @@ def variant_pairs(stream: StreamPairs, split: str, epoch: int, indices: Sequence
     carried = set(variants) & set(CARRIED)
     if carried:
         rest, heads = rest_bodies(draws["identities"][:, 1])
-    if {"posed", "rotated"} & set(variants):
+    if {"posed", "rotated", "seams"} & set(variants):
         posed = full.pose(draws["identities"][:, 1], posed_target_poses(stream, split, epoch, indices))
     foreign = _foreign_driver(stream, split, epoch, indices) if "foreign_driver" in variants else None
     pairs = []
@@ -316,7 +316,7 @@ def variant_pairs(stream: StreamPairs, split: str, epoch: int, indices: Sequence
                 elif variant == "seams":
                     points, faces, _ = split_at_seams(points, faces, seam_islands(points, faces))
                 carry = AttachedPoints.attach(points, rest[b], full.faces)
-                full_target = posed[b] if variant in ("posed", "rotated") else target
+                full_target = posed[b] if variant in ("posed", "rotated", "seams") else target
                 target, truth, drive = (carry.on(x, full.faces) for x in (full_target, truth, drive))
                 if variant in ("rotated", "lying"):
                     rng = _generator(stream.seed, f"{variant}-target", *keys)
