@@ -42,7 +42,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--topology", help="stream checkpoints: the Anny topology of the pairs (default: the training one)")
     p.add_argument("--targets", metavar="VARIANTS",
                    help="stream checkpoints: score targets (and drivers) of other topologies instead of the splits, "
-                        "e.g. same,remeshed,posed,rotated,lying,glb,parts,dense,foreign_driver "
+                        "e.g. same,remeshed,posed,rotated,lying,glb,seams,parts,dense,foreign_driver "
                         "(aniformer/synth/variants.py), on --target-split")
     p.add_argument("--target-split", default="characters", help="the split of --targets (default: characters)")
     p.add_argument("--compare", action="append", default=[], metavar="NAME=CKPT",
