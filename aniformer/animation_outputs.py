@@ -48,7 +48,7 @@ def write_rig(tmp: Path, options: AnimateOptions, summary: dict, target, target_
     rig, motion = fit_rig(build_rig(target, *rig_source, bone_names=options.bone_names), target, world)
     write_rigged_glb(tmp / "rigged.glb", target, target_faces, rig, motion, fps=summary["fps"], name=summary["name"],
                      extras={"checkpoint": str(options.checkpoint), "driving": str(options.driving)})
-    write_bvh(tmp / "motion.bvh", rig, motion, summary["fps"], UNITS[options.unit])
+    write_bvh(tmp / "motion.bvh", rig, motion, summary["fps"], UNITS[summary["unit"]])
     summary["rig"] = {"joints": len(rig.names), "residual_m": round(motion.residual, 6)}
 
 
@@ -110,8 +110,8 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
     fps, name = summary["fps"], summary["name"]
     in_process = objs_process and objs_in_a_process(len(local), len(target))
     in_target_axes = from_z_up(world, summary["up"]["target"]["axis"])
-    if UNITS[options.unit] != 1:  # metres are written as they are: no copy of the clip
-        in_target_axes = in_target_axes / UNITS[options.unit]
+    if UNITS[summary["unit"]] != 1:  # metres are written as they are: no copy of the clip
+        in_target_axes = in_target_axes / UNITS[summary["unit"]]
     with staged_output_dir(out, options.overwrite) as tmp:
         def glb() -> None:
             with timed(seconds, "write GLB"):
@@ -146,8 +146,8 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, name: str, 
                     driving_faces, target, target_faces, axes: dict, units: dict, inference: Inference, seconds: dict,
                     objs_process: bool = False) -> dict:
     """Place the inferred frames in the world, then `write_outputs` into
-    ``out`` with their animation.json record (returned), in ``options.unit`` (the target's; ``units``: {role:
-    (unit, why)} as read); ``objs_process``: see `write_outputs`."""
+    ``out`` with their animation.json record (returned), in the target's unit (``units``: {role: (unit, why)} as
+    read); ``objs_process``: see `write_outputs`."""
     from aniformer.animate import root_motion
 
     local = inference.frames
@@ -155,7 +155,7 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, name: str, 
     registrations = inference.registrations
     summary = {
         "checkpoint": str(options.checkpoint), "target": str(options.target), "driving": str(options.driving),
-        "name": name, "frames": len(local), "fps": fps, "unit": options.unit,
+        "name": name, "frames": len(local), "fps": fps, "unit": units["target"][0],
         "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
         "window": inference.window, "combine": inference.combine, "windows": inference.windows,
         "input_center": inference.input_center,

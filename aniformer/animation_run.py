@@ -11,7 +11,7 @@ import functools
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 from aniformer.errors import UserError
@@ -80,18 +80,17 @@ def load_inputs(options: AnimateOptions):
     driver: ``--unit``, else the one their size is a body's in), all checked before any work (and before
     anything is written): frame count, the target mesh, the units, the size the GLB would have."""
     from aniformer.animate import driving_files, driving_fps
-    from aniformer.io.mesh import file_unit, load_mesh
+    from aniformer.io.mesh import load_body_mesh
 
     files = driving_files(options.driving)
     if len(files) > options.max_frames:
         raise UserError(f"--driving {options.driving}: {len(files):,} frames exceeds --max-frames "
                         f"{options.max_frames:,}")
-    units = {"target": file_unit(options.unit, options.target)}
-    target, target_faces = load_mesh(options.target, max_vertices=options.max_vertices, unit=units["target"][0])
+    target, target_faces, target_unit = load_body_mesh(options.target, options.max_vertices, options.unit)
     fps = options.fps or driving_fps(files) or 30.0
     name = options.name or f"{Path(options.target).stem}_{files[0].parent.name}"
     check_glb_size(options, len(files), target, target_faces)
-    units["driver"] = file_unit(options.unit, files[0])
+    units = {"target": target_unit, "driver": load_body_mesh(files[0], options.max_vertices, options.unit)[2]}
     return files, target, target_faces, fps, name, units
 
 
@@ -253,7 +252,6 @@ def animate_files(options: AnimateOptions, inputs: tuple, out: Path, device, loa
     from aniformer.geometry import to_z_up
 
     files, target, target_faces, fps, name, units = inputs
-    options = replace(options, unit=units["target"][0])  # outputs are written in the target's unit
     model, state = load_model()
     with tqdm(total=len(files), unit="frame", desc="load driving", disable=options.no_progress,
               file=sys.stderr) as bar:

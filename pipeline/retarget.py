@@ -72,10 +72,9 @@ def load_target(path: str, up: str, unit: str, max_vertices: int):
     """(its Anny topology or None, the `Mesh`)."""
     from aniformer.animation_run import anny_topology, input_axis
     from aniformer.geometry import to_z_up
-    from aniformer.io.mesh import file_unit, load_mesh
+    from aniformer.io.mesh import load_body_mesh
 
-    unit = file_unit(unit, path)
-    vertices, faces = load_mesh(path, max_vertices=max_vertices, unit=unit[0])
+    vertices, faces, unit = load_body_mesh(path, max_vertices, unit)
     axis = input_axis(up, Path(path), vertices[None], faces)
     vertices = to_z_up(vertices, axis[0])
     return anny_topology(vertices, faces), Mesh(path, vertices, faces, axis, unit)
@@ -88,12 +87,12 @@ def load_clip(path: str, up: str, unit: str, max_vertices: int, max_frames: int,
     from aniformer.animation_run import anny_topology, input_axis
     from aniformer.errors import UserError
     from aniformer.geometry import to_z_up
-    from aniformer.io.mesh import file_unit
+    from aniformer.io.mesh import load_body_mesh
 
     files = driving_files(path)
     if len(files) > max_frames:
         raise UserError(f"{path}: {len(files):,} frames exceeds --max-frames {max_frames:,}")
-    unit = file_unit(unit, files[0])
+    unit = load_body_mesh(files[0], max_vertices, unit)[2]
     driving, faces = load_driving(files, max_vertices, unit[0])
     axis = input_axis(up, files[0], driving, faces)
     driving = to_z_up(driving, axis[0])
@@ -190,9 +189,9 @@ def write_pair(options: AnimateOptions, out: Path, state: dict, target: Mesh, cl
     inference = replace(inference, registrations=copy.deepcopy(inference.registrations))
     began = time.perf_counter()
     name = f"{Path(target.path).stem}_{Path(clip.path).name}"
-    write_animation(out, replace(options, unit=target.unit[0]), state, name, clip.fps, clip.driving, clip.faces,
-                    target.vertices, target.faces, {"target": target.axis, "driver": clip.axis},
-                    {"target": target.unit, "driver": clip.unit}, inference, seconds)
+    write_animation(out, options, state, name, clip.fps, clip.driving, clip.faces, target.vertices, target.faces,
+                    {"target": target.axis, "driver": clip.axis}, {"target": target.unit, "driver": clip.unit},
+                    inference, seconds)
     return pair_row(out, "ok", seconds["inference"] + time.perf_counter() - began)
 
 

@@ -6,7 +6,7 @@ import trimesh
 
 from aniformer.errors import MeshError
 from aniformer.geometry import center_bbox, shuffle_vertices
-from aniformer.io.mesh import file_unit, load_mesh, save_mesh, validate_mesh
+from aniformer.io.mesh import load_body_mesh, load_mesh, save_mesh, validate_mesh
 
 
 @pytest.fixture
@@ -111,10 +111,10 @@ def test_a_body_files_unit_is_the_one_its_size_is_a_humans_in(tmp_path, height, 
     largest extent counts (a body lying along x, here)."""
     path = tmp_path / "body.obj"
     path.write_text(f"v 0 0 0\nv {height} 0 0\nv 0 {height / 4} 0.1\nf 1 2 3\n")
-    assert file_unit("auto", path)[0] == unit
-    assert file_unit("cm", path) == ("cm", "--unit")  # a unit given is taken as it is
-    assert np.ptp(load_mesh(path, unit=file_unit("auto", path)[0])[0], axis=0).max() == pytest.approx(
-        height * {"m": 1, "cm": 0.01, "mm": 0.001}[unit])
+    vertices, _, read_as = load_body_mesh(path)
+    assert read_as[0] == unit
+    assert load_body_mesh(path, unit="cm")[2] == ("cm", "--unit")  # a unit given is taken as it is
+    assert np.ptp(vertices, axis=0).max() == pytest.approx(height * {"m": 1, "cm": 0.01, "mm": 0.001}[unit])
 
 
 @pytest.mark.parametrize("height", [0.1, 10, 35, 350, 5000])
@@ -123,7 +123,7 @@ def test_a_body_file_of_no_humans_size_in_any_unit_asks_for_the_unit(tmp_path, h
     path.write_text(f"v 0 0 0\nv 0 0 {height}\nv 0 0.01 0\nf 1 2 3\n")
     with pytest.raises(MeshError, match=rf"body\.obj: {height:g} units across, a human body's size in none of "
                                         r"m, cm, mm \(0\.4-3\.0 m\): pass --unit"):
-        file_unit("auto", path)
+        load_body_mesh(path)
 
 
 OBJ_TEXTS = {  # the numpy reader takes the first five; the rest go line by line, with the same result

@@ -5,7 +5,7 @@ polygons are triangulated on load (fanned); anything else that is not a usable t
 refused with a one-line `MeshError`. OBJ files are read here, not by trimesh, because trimesh's
 OBJ loader drops vertices that no face references (even with ``process=False``): every ``v`` line
 is kept, in file order. Files in centimetres or millimetres are scaled to metres by ``unit``;
-`file_unit` tells m, cm and mm apart by a body's size.
+`load_body_mesh` tells m, cm and mm apart by a body's size.
 """
 
 from __future__ import annotations
@@ -118,21 +118,26 @@ def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def load_mesh(path: str | os.PathLike, max_vertices: int = DEFAULT_MAX_VERTICES,
               unit: str = "m") -> tuple[np.ndarray, np.ndarray]:
     """Read a mesh file in ``unit`` (m, cm, mm) -> (vertices (V, 3) float32 metres, faces (F, 3) int64), validated."""
+    vertices, faces, _ = load_body_mesh(path, max_vertices, unit)
+    return vertices, faces
+
+
+def load_body_mesh(path: str | os.PathLike, max_vertices: int = DEFAULT_MAX_VERTICES,
+                   unit: str = "auto") -> tuple[np.ndarray, np.ndarray, tuple[str, str]]:
+    """`load_mesh` of a human body's file, and (its unit, why): ``unit`` as given, or for ``"auto"`` the one of
+    m, cm and mm in which the body's largest extent is a human's (``HUMAN_EXTENT``; the three ranges do not
+    overlap), `MeshError` if none is."""
     vertices, faces = _read_mesh(Path(path))
-    vertices = vertices * UNITS[unit]
+    read_as = (unit, "--unit") if unit != "auto" else _body_unit(vertices, path)
+    vertices = vertices * UNITS[read_as[0]]
     validate_mesh(vertices, faces, str(path), max_vertices)
-    return vertices.astype(np.float32), faces
+    return vertices.astype(np.float32), faces, read_as
 
 
-def file_unit(unit: str, path: str | os.PathLike) -> tuple[str, str]:
-    """(the unit of a body's mesh file, why): ``unit`` as given, or for ``"auto"`` the one of m, cm and mm in
-    which the body's largest extent is a human's (``HUMAN_EXTENT``; the three ranges do not overlap), `MeshError` if none is."""
-    if unit != "auto":
-        return unit, "--unit"
-    vertices, _ = _read_mesh(Path(path))
+def _body_unit(vertices: np.ndarray, path: str | os.PathLike) -> tuple[str, str]:
     extent = float(np.ptp(vertices, axis=0).max()) if len(vertices) else float("nan")
     if not np.isfinite(extent):
-        return "m", "not measurable: the mesh is refused as it is"  # load_mesh names what is wrong with it
+        return "m", "not measurable"  # validate_mesh refuses the mesh, naming what is wrong with it
     fitting = [name for name, metres in UNITS.items() if HUMAN_EXTENT[0] <= extent * metres <= HUMAN_EXTENT[1]]
     if not fitting:
         raise MeshError(f"{path}: {extent:.4g} units across, a human body's size in none of m, cm, mm "

@@ -187,7 +187,9 @@ def split_at_seams(vertices: np.ndarray, faces: np.ndarray, islands: np.ndarray)
         used = np.unique(faces[islands == k])
         renumber = np.full(len(vertices), -1)
         renumber[used] = np.arange(len(used)) + sum(map(len, origin))
-        pieces.append(vertices[used]), new_faces.append(renumber[faces[islands == k]]), origin.append(used)
+        pieces.append(vertices[used])
+        new_faces.append(renumber[faces[islands == k]])
+        origin.append(used)
     return np.concatenate(pieces), np.concatenate(new_faces), np.concatenate(origin)
 
 
