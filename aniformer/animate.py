@@ -44,7 +44,8 @@ import numpy as np
 from aniformer.errors import MeshError, UserError
 from aniformer.geometry import CENTER_MODES, center_bbox
 from aniformer.io.files import natural_key
-from aniformer.io.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, load_mesh
+from aniformer.io.gltf_scene import GltfClip, gltf_clip
+from aniformer.io.mesh import DEFAULT_MAX_VERTICES, MESH_SUFFIXES, UNITS, body_unit, load_body_mesh, load_mesh, validate_mesh
 
 if TYPE_CHECKING:  # torch and trimesh load in the functions that use them: jobs' --help and input checks stay fast
     import torch
@@ -131,9 +132,47 @@ def driving_files(source: str | os.PathLike) -> list[Path]:
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
+def driving_clip(files: list[Path], fps: float | None = None, animation: str | None = None) -> GltfClip | None:
+    """The ``animation`` (name or index, default the first) a one-file driving sequence holds (an animated glTF,
+    sampled at ``fps``: `aniformer.io.gltf_scene`), else None: the files are the frames. An animated glTF among
+    other frames is refused (its animation would be dropped for its rest pose), and so is ``animation`` where
+    there is no one file to play it from."""
+    if len(files) == 1:
+        clip = gltf_clip(files[0], fps, animation)
+        if clip is None and animation is not None:
+            raise MeshError(f"{files[0]}: --animation {animation!r}, but the file holds no animation")
+        return clip
+    if animation is not None:
+        raise MeshError(f"--animation {animation!r} plays an animation of one glTF --driving file, not of "
+                        f"{len(files):,} frame files")
+    for path in files:
+        if gltf_clip(path) is not None:
+            raise MeshError(f"{path}: an animated glTF among {len(files):,} driving files; pass it alone as "
+                            "--driving to play its animation")
+    return None
+
+
+def driving_unit(files: list[Path], clip: GltfClip | None, max_vertices: int, unit: str) -> tuple[str, str]:
+    """(unit, why) of a driving sequence, from its first frame (`aniformer.io.mesh.load_body_mesh`)."""
+    if clip is None:
+        return load_body_mesh(files[0], max_vertices, unit)[2]
+    vertices, _ = clip.sample(1)
+    return body_unit(vertices[0], files[0], unit)
+
+
 def load_driving(files: list[Path], max_vertices: int = DEFAULT_MAX_VERTICES, unit: str = "m",
-                 progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Load frames -> (vertices (N, V, 3) float32 metres, faces); every frame must have the first one's faces."""
+                 progress: Callable[[int], None] | None = None,
+                 clip: GltfClip | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Load frames -> (vertices (N, V, 3) float32 metres, faces); every frame must have the first one's faces.
+    With ``clip`` (`driving_clip`), its frames instead of the files'."""
+    if clip is not None:
+        vertices, faces = clip.sample()
+        vertices = vertices * UNITS[unit]
+        for k, frame in enumerate(vertices):
+            validate_mesh(frame, faces, f"{files[0]} at {k / clip.fps:.3f} s", max_vertices)
+        if progress is not None:
+            progress(len(vertices))
+        return vertices.astype(np.float32), faces
     frames, faces = [], None
     for path in files:
         vertices, f = load_mesh(path, max_vertices=max_vertices, unit=unit)

@@ -144,10 +144,11 @@ def write_outputs(out: Path, options: AnimateOptions, summary: dict, driving, dr
 
 def write_animation(out: Path, options: AnimateOptions, state: dict, name: str, fps: float, driving,
                     driving_faces, target, target_faces, axes: dict, units: dict, inference: Inference, seconds: dict,
-                    objs_process: bool = False) -> dict:
+                    objs_process: bool = False, driving_animation: dict | None = None) -> dict:
     """Place the inferred frames in the world, then `write_outputs` into
     ``out`` with their animation.json record (returned), in the target's unit (``units``: {role: (unit, why)} as
-    read); ``objs_process``: see `write_outputs`."""
+    read); ``objs_process``: see `write_outputs`; ``driving_animation``: the glTF animation played as the driver
+    (`aniformer.io.gltf_scene.GltfClip.record`), if it was one."""
     from aniformer.animate import root_motion
 
     local = inference.frames
@@ -156,6 +157,7 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, name: str, 
     summary = {
         "checkpoint": str(options.checkpoint), "target": str(options.target), "driving": str(options.driving),
         "name": name, "frames": len(local), "fps": fps, "unit": units["target"][0],
+        **({"driving_animation": driving_animation} if driving_animation is not None else {}),
         "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
         "window": inference.window, "combine": inference.combine, "windows": inference.windows,
         "input_center": inference.input_center,

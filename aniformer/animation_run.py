@@ -27,6 +27,7 @@ class AnimateOptions:
     target: str
     driving: str
     fps: float | None
+    animation: str | None
     unit: str
     up: str
     name: str | None
@@ -76,22 +77,25 @@ def anny_topology(vertices, faces) -> str | None:
 
 
 def load_inputs(options: AnimateOptions):
-    """(driving frame files, target vertices and faces, fps, name, {role: (unit, why)} of the target and the
-    driver: ``--unit``, else the one their size is a body's in), all checked before any work (and before
-    anything is written): frame count, the target mesh, the units, the size the GLB would have."""
-    from aniformer.animate import driving_files, driving_fps
+    """(driving frame files, the animated glTF they are (`aniformer.animate.driving_clip`) or None, target vertices
+    and faces, fps, name, {role: (unit, why)} of the target and the driver: ``--unit``, else the one their size
+    is a body's in), all checked before any work (and before anything is written): frame count, the target mesh,
+    the units, the size the GLB would have."""
+    from aniformer.animate import driving_clip, driving_files, driving_fps, driving_unit
     from aniformer.io.mesh import load_body_mesh
 
     files = driving_files(options.driving)
-    if len(files) > options.max_frames:
-        raise UserError(f"--driving {options.driving}: {len(files):,} frames exceeds --max-frames "
+    clip = driving_clip(files, options.fps, options.animation)
+    frames = clip.frames if clip is not None else len(files)
+    if frames > options.max_frames:
+        raise UserError(f"--driving {options.driving}: {frames:,} frames exceeds --max-frames "
                         f"{options.max_frames:,}")
     target, target_faces, target_unit = load_body_mesh(options.target, options.max_vertices, options.unit)
-    fps = options.fps or driving_fps(files) or 30.0
-    name = options.name or f"{Path(options.target).stem}_{files[0].parent.name}"
-    check_glb_size(options, len(files), target, target_faces)
-    units = {"target": target_unit, "driver": load_body_mesh(files[0], options.max_vertices, options.unit)[2]}
-    return files, target, target_faces, fps, name, units
+    fps = clip.fps if clip is not None else options.fps or driving_fps(files) or 30.0
+    name = options.name or f"{Path(options.target).stem}_{files[0].stem if clip is not None else files[0].parent.name}"
+    check_glb_size(options, frames, target, target_faces)
+    units = {"target": target_unit, "driver": driving_unit(files, clip, options.max_vertices, options.unit)}
+    return files, clip, target, target_faces, fps, name, units
 
 
 def check_glb_size(options: AnimateOptions, frames: int, target, target_faces) -> None:
@@ -251,11 +255,12 @@ def animate_files(options: AnimateOptions, inputs: tuple, out: Path, device, loa
     from aniformer.animation_outputs import write_animation  # it imports this module
     from aniformer.geometry import to_z_up
 
-    files, target, target_faces, fps, name, units = inputs
+    files, clip, target, target_faces, fps, name, units = inputs
     model, state = load_model()
-    with tqdm(total=len(files), unit="frame", desc="load driving", disable=options.no_progress,
-              file=sys.stderr) as bar:
-        driving, driving_faces = load_driving(files, options.max_vertices, units["driver"][0], progress=bar.update)
+    with tqdm(total=clip.frames if clip is not None else len(files), unit="frame", desc="load driving",
+              disable=options.no_progress, file=sys.stderr) as bar:
+        driving, driving_faces = load_driving(files, options.max_vertices, units["driver"][0], progress=bar.update,
+                                              clip=clip)
     axes = input_axes(options, files, target_faces, target, driving, driving_faces)
     target, driving = to_z_up(target, axes["target"][0]), to_z_up(driving, axes["driver"][0])
     loaded = time.perf_counter()
@@ -269,5 +274,6 @@ def animate_files(options: AnimateOptions, inputs: tuple, out: Path, device, loa
     inferred = time.perf_counter()
     seconds["inference"] = round(inferred - loaded, 3)
     summary = write_animation(out, options, state, name, fps, driving, driving_faces, target, target_faces, axes,
-                              units, inference, seconds, objs_process=True)
+                              units, inference, seconds, objs_process=True,
+                              driving_animation=clip.record() if clip is not None else None)
     return summary, trust, inferred - loaded

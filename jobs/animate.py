@@ -62,11 +62,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         "(6-24x closer than the shipped model on test clips, docs/results.md; ~0.6 s per frame on "
                         "2 cores)")
     p.add_argument("--target", required=True, metavar="MESH", help="the mesh to animate (OBJ, PLY, ...)")
-    p.add_argument("--driving", required=True, metavar="DIR_OR_GLOB", help="driving frames: a directory or a glob")
+    p.add_argument("--driving", required=True, metavar="DIR_OR_GLOB",
+                   help="driving frames: a directory or a glob, or one animated glTF (.glb/.gltf)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument("--fps", type=float, default=None,
                    help=f"frame rate of the sequence (default: the driver's, from {' or '.join(FPS_SIDECARS)} "
-                        "beside its frames, else 30)")
+                        "beside its frames or an animated glTF's own, else 30; an animated glTF is sampled at it)")
+    p.add_argument("--animation", default=None, metavar="NAME",
+                   help="with one animated glTF as --driving: the animation to play, by name or index (default: "
+                        "its first)")
     p.add_argument("--unit", choices=("auto", *UNITS), default="auto",
                    help="unit of the target and driving files (default auto: for each, the one of m, cm, mm its "
                         "body's size is a human's in); outputs are written in the target's")
@@ -156,6 +160,10 @@ def main(argv: list[str]) -> None:
     print(f"animated {frames} frames ({summary['target_vertices']:,}-vertex target, {summary['driving_vertices']:,}-vertex "
           f"driver, T={summary['window']}, {summary['windows']} windows, combine={summary['combine']}) in {seconds:.1f} s "
           f"(inference {inference:.1f} s)")
+    if "driving_animation" in summary:
+        played = summary["driving_animation"]
+        print(f"driver: animation {played['name']!r} ({played['index'] + 1} of {played['of']}) of {args.driving}, "
+              f"sampled at {played['fps']:g} fps" + (" (--animation to choose another)" if played["of"] > 1 else ""))
     for role, unit in summary["units"].items():
         if unit["unit"] != "m":
             print(f"read the {role} in {unit['unit']} ({unit['why']}); outputs in the target's unit")

@@ -5,7 +5,8 @@
     ray job submit --working-dir . -- python jobs/retarget.py --targets /shared/chars --clips /shared/clips --out /shared/lib
 
 ``--targets`` is a folder of meshes (OBJ, PLY, GLB, ...), ``--clips`` a folder whose sub-folders are driving
-sequences (each what jobs/animate.py's ``--driving`` takes). Each pair gets ``OUT/<target stem>/<clip>/`` with
+sequences (each what jobs/animate.py's ``--driving`` takes) and whose animated .glb/.gltf files are clips too
+(each its first animation). Each pair gets ``OUT/<target stem>/<clip>/`` with
 what jobs/animate.py writes for that pair alone (frames/, animation.glb, preview.gif, animation.json; with
 ``--rig`` rigged.glb and motion.bvh), staged and renamed into place when complete; ``OUT/summary.csv`` has a
 row per pair: target, clip, status (ok, refused by the self-check, error), frames, seconds, fit error (mm),
@@ -43,7 +44,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p = ArgumentParser(prog="retarget.py", description=__doc__.split("\n\n")[0],
                        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--targets", required=True, metavar="DIR", help="folder of target meshes")
-    p.add_argument("--clips", required=True, metavar="DIR", help="folder of driving clips, one sub-folder each")
+    p.add_argument("--clips", required=True, metavar="DIR",
+                   help="folder of driving clips: a sub-folder of frames, or an animated .glb/.gltf, each")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (OUT/<target stem>/<clip>/)")
     p.add_argument("--checkpoint", default="pretrained", metavar="CKPT",
                    help="as jobs/animate.py's: a file, an MLflow run id, a registered model, 'pretrained' (default) or "

@@ -10,14 +10,15 @@ from pathlib import Path
 
 from aniformer.errors import UserError
 from aniformer.io.files import atomic_path, natural_key
-from aniformer.io.mesh import MESH_SUFFIXES
+from aniformer.io.mesh import GLTF_SUFFIXES, MESH_SUFFIXES
 
 COLUMNS = ("target", "clip", "status", "frames", "seconds", "fit_mm", "self_check")
 
 
 def find_library(targets: str, clips: str) -> tuple[dict[str, str], dict[str, str]]:
-    """({target stem: path}, {clip name: folder}) of the folders ``targets`` and ``clips``, in natural order;
-    `UserError` for an empty or missing folder or two targets of one stem (their outputs would collide)."""
+    """({target stem: path}, {clip name: its folder of frames, or its animated glTF file (named by its stem)}) of
+    the folders ``targets`` and ``clips``, in natural order; `UserError` for an empty or missing folder, or two
+    targets or clips of one name (their outputs would collide)."""
     targets_dir, clips_dir = Path(targets).expanduser(), Path(clips).expanduser()
     for flag, folder in (("--targets", targets_dir), ("--clips", clips_dir)):
         if not folder.is_dir():
@@ -29,12 +30,19 @@ def find_library(targets: str, clips: str) -> tuple[dict[str, str], dict[str, st
                 raise UserError(f"--targets: {targets[path.stem]} and {path} have one stem, their outputs would "
                                 "share OUT/<stem>/: rename one")
             targets[path.stem] = str(path.resolve())
-    clips = {path.name: str(path.resolve()) for path in sorted(clips_dir.iterdir(), key=lambda p: natural_key(p.name))
-             if path.is_dir() and not path.name.startswith(".")}
+    clips = {}
+    for path in sorted(clips_dir.iterdir(), key=lambda p: natural_key(p.name)):
+        if path.name.startswith(".") or not (path.is_dir() or path.suffix.lower() in GLTF_SUFFIXES):
+            continue
+        name = path.name if path.is_dir() else path.stem
+        if name in clips:
+            raise UserError(f"--clips: {clips[name]} and {path} are both clip {name}, their outputs would share "
+                            f"OUT/<target>/{name}/: rename one")
+        clips[name] = str(path.resolve())
     if not targets:
         raise UserError(f"--targets {targets_dir}: no mesh files ({', '.join(MESH_SUFFIXES)})")
     if not clips:
-        raise UserError(f"--clips {clips_dir}: no sub-folders (one per clip)")
+        raise UserError(f"--clips {clips_dir}: no clips (a sub-folder of frames, or an animated .glb/.gltf, each)")
     return targets, clips
 
 

@@ -50,7 +50,8 @@ class Mesh(Writable):
 
 @dataclass(frozen=True)
 class Clip(Writable):
-    """A driving clip read once: z-up frames (T, V, 3) in metres, faces, fps, (up axis, why), (unit, why)."""
+    """A driving clip read once: z-up frames (T, V, 3) in metres, faces, fps, (up axis, why), (unit, why), and the
+    glTF animation it was played from, if it is one file (`aniformer.io.gltf_scene.GltfClip.record`)."""
 
     path: str
     driving: np.ndarray
@@ -58,6 +59,7 @@ class Clip(Writable):
     fps: float
     axis: tuple[str, str]
     unit: tuple[str, str]
+    animation: dict | None
 
 
 @dataclass(frozen=True)
@@ -83,23 +85,25 @@ def load_target(path: str, up: str, unit: str, max_vertices: int):
 @ray.remote(num_returns=2, max_retries=MAX_RETRIES)
 def load_clip(path: str, up: str, unit: str, max_vertices: int, max_frames: int, trained_topology: str):
     """({"frames", "anny": its Anny topology or None, "topology": the one the model runs on for it}, the `Clip`)."""
-    from aniformer.animate import driving_files, driving_fps, load_driving
+    from aniformer.animate import driving_clip, driving_files, driving_fps, driving_unit, load_driving
     from aniformer.animation_run import anny_topology, input_axis
     from aniformer.errors import UserError
     from aniformer.geometry import to_z_up
-    from aniformer.io.mesh import load_body_mesh
 
     files = driving_files(path)
-    if len(files) > max_frames:
-        raise UserError(f"{path}: {len(files):,} frames exceeds --max-frames {max_frames:,}")
-    unit = load_body_mesh(files[0], max_vertices, unit)[2]
-    driving, faces = load_driving(files, max_vertices, unit[0])
+    clip = driving_clip(files)
+    if (clip.frames if clip is not None else len(files)) > max_frames:
+        raise UserError(f"{path}: {clip.frames if clip is not None else len(files):,} frames exceeds --max-frames "
+                        f"{max_frames:,}")
+    unit = driving_unit(files, clip, max_vertices, unit)
+    driving, faces = load_driving(files, max_vertices, unit[0], clip=clip)
     axis = input_axis(up, files[0], driving, faces)
     driving = to_z_up(driving, axis[0])
     anny = anny_topology(driving[0], faces)
     # the topology the model runs on for this clip, as aniformer.animation_run.model_inputs chooses it
     info = {"frames": len(driving), "anny": anny, "topology": anny or trained_topology}
-    return info, Clip(path, driving, faces, driving_fps(files) or 30.0, axis, unit)
+    return info, Clip(path, driving, faces, clip.fps if clip is not None else driving_fps(files) or 30.0, axis, unit,
+                      clip.record() if clip is not None else None)
 
 
 @ray.remote(num_returns=2, max_retries=MAX_RETRIES)
@@ -188,10 +192,10 @@ def write_pair(options: AnimateOptions, out: Path, state: dict, target: Mesh, cl
     # writable arrays for the rig's fit (see `Writable`)
     inference = replace(inference, registrations=copy.deepcopy(inference.registrations))
     began = time.perf_counter()
-    name = f"{Path(target.path).stem}_{Path(clip.path).name}"
+    name = f"{Path(target.path).stem}_{Path(clip.path).stem if clip.animation else Path(clip.path).name}"
     write_animation(out, options, state, name, clip.fps, clip.driving, clip.faces, target.vertices, target.faces,
                     {"target": target.axis, "driver": clip.axis}, {"target": target.unit, "driver": clip.unit},
-                    inference, seconds)
+                    inference, seconds, driving_animation=clip.animation)
     return pair_row(out, "ok", seconds["inference"] + time.perf_counter() - began)
 
 

@@ -530,6 +530,26 @@ def test_animate_job_glb_plays_in_threejs(inputs, tmp_path):
     assert body_pixels(shot) > 500
 
 
+def test_animate_job_plays_an_animated_glb_as_the_folder_of_its_frames(inputs, tmp_path):
+    """``--driving clip.glb``: the file's animation, frame for frame, at its rate (before: its rest pose alone,
+    one frame, exit 0)."""
+    driving, faces = load_driving(driving_files(inputs["driving"]))
+    clip = write_glb(tmp_path / "clip.glb", driving, faces, fps=25, frames_per_mesh=8)
+    outs = {}
+    for name, source, rate in (("folder", inputs["driving"], ["--fps", 25]), ("glb", clip, [])):  # the GLB says 25
+        outs[name] = tmp_path / name
+        animate_main(["--checkpoint", inputs["checkpoint"], "--target", inputs["target"], "--driving", source,
+                      "--out", outs[name], "--no-progress", "--preview-frames", 0, "--force", *rate])
+    summary = json.loads((outs["glb"] / "animation.json").read_text())
+    assert summary["frames"] == 30 and summary["fps"] == 25 and summary["name"] == "target_clip"
+    assert summary["driving_animation"] == {"name": "aniformer", "index": 0, "of": 1, "fps": 25.0, "frames": 30}
+    assert summary["up"]["driver"] == {"axis": "y", "why": "glTF is y-up"}
+    for k in (0, 13, 29):
+        np.testing.assert_allclose(trimesh.load(outs["glb"] / "frames" / f"frame_{k:04d}.obj", process=False).vertices,
+                                   trimesh.load(outs["folder"] / "frames" / f"frame_{k:04d}.obj", process=False).vertices,
+                                   atol=1e-5)
+
+
 def test_animate_job_quads_are_triangulated(inputs, tmp_path):
     quad = tmp_path / "quad.obj"  # a 2x1 grid of quads
     quad.write_text("v 0 0 0\nv 0.5 0 0\nv 1 0 0\nv 0 0 1\nv 0.5 0 1\nv 1 0 1\nf 1 2 5 4\nf 2 3 6 5\n")
@@ -555,6 +575,10 @@ def _driver_with(root: Path, name: str, data: str | bytes) -> Path:
     write_driver(root / "drv", 3)
     _write(root / "drv" / name, data)
     return root / "drv"
+
+
+def _animated_glb(root: Path) -> bytes:
+    return write_glb(root / "animated.glb", *driving_sequence(3)).read_bytes()
 
 
 def _driver_then(root: Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
@@ -600,6 +624,10 @@ BAD_CASES = {
     "garbage bytes": lambda r, i: ({"driving": _driver_with(r, "frame_1.ply", os.urandom(300))}, [], "cannot read"),
     "garbage obj": lambda r, i: ({"target": _write(r / "g.obj", b"\x00\xff" * 50)}, [], "empty"),
     "unsupported format": lambda r, i: ({"target": _write(r / "t.txt", "v 0 0 0")}, [], "unsupported"),
+    "fbx": lambda r, i: ({"target": _write(r / "t.fbx", b"Kaydara FBX Binary  \0")}, [],
+                         "unsupported mesh format (use one of .obj, .ply, .off, .stl, .glb, .gltf): export it as glTF"),
+    "bvh driver": lambda r, i: ({"driving": _write(r / "walk.bvh", "HIERARCHY\nROOT Hips\n")}, [],
+                                "a BVH is a skeleton's motion without a mesh"),
     "empty file": lambda r, i: ({"driving": _driver_with(r, "frame_1.obj", b"")}, [], "empty"),
     "no vertices": lambda r, i: ({"driving": _driver_with(r, "frame_1.obj", "# only a comment\n")}, [], "empty"),
     "nan": lambda r, i: ({"driving": _driver_with(r, "frame_1.obj", TRIANGLE.format("nan", 3))}, [], "NaN"),
@@ -618,6 +646,11 @@ BAD_CASES = {
     "millimetres read as metres": lambda r, i: (
         {"target": _write(r / "t.obj", "v 0 0 0\nv 0 0 1700\nv 0 1 0\nf 1 2 3\n")}, ["--unit", "m"], "wrong --unit?"),
     "bad unit": lambda r, i: ({}, ["--unit", "inch"], "invalid choice: 'inch'"),
+    "animated glb among frames": lambda r, i: ({"driving": _driver_with(r, "frame_9.glb", _animated_glb(r))}, [],
+                                               "an animated glTF among 4 driving files"),
+    "animation of frames": lambda r, i: ({}, ["--animation", "walk"], "plays an animation of one glTF --driving file"),
+    "unknown animation": lambda r, i: ({"driving": _write(r / "c.glb", _animated_glb(r))}, ["--animation", "run"],
+                                       "no animation 'run'; it has 'aniformer'"),
     "bad fps sidecar": lambda r, i: ({"driving": _driver_with(r, "sequence.json", '{"fps": "fast"}')}, [],
                                      "fps must be a positive number"),
     "too many morph targets": lambda r, i: ({}, ["--frames-per-mesh", "4096"],

@@ -24,7 +24,8 @@ TOPOLOGY = "notoes_collapse3pc"  # the shipped model's
 
 @pytest.fixture(scope="module")
 def library(tmp_path_factory, job_main) -> Path:
-    """targets/{anny,decimated}.obj and clips/{walk,crouch,shuffled_walk}/ (4 frames each), as a user has them."""
+    """targets/{anny,decimated}.obj, clips/{walk,crouch,shuffled_walk}/ (4 frames each) and clips/walk_glb.glb (the
+    walk as one animated glTF), as a user has them."""
     import trimesh
 
     from aniformer.cli.exits import run
@@ -44,6 +45,10 @@ def library(tmp_path_factory, job_main) -> Path:
     clips = root / "clips"
     shutil.copytree(root / "export" / "locomotion" / "driving", clips / "walk")
     shutil.copytree(root / "export" / "crouch" / "driving", clips / "crouch")
+    from aniformer.animate import driving_files, load_driving
+    from aniformer.io.glb import write_glb
+
+    write_glb(clips / "walk_glb.glb", *load_driving(driving_files(clips / "walk")))  # the walk as one animated file
     order = np.random.default_rng(0).permutation(369)
     (clips / "shuffled_walk").mkdir()
     for frame in sorted((clips / "walk").glob("*.obj")):
@@ -71,9 +76,10 @@ def summary_rows(out: Path) -> dict[tuple[str, str], dict]:
 @pytest.mark.ray
 def test_a_library_is_one_job_each_foreign_mesh_registered_once_and_a_pair_equals_animate(
         library, ray_address, tmp_path, job_main, monkeypatch):
-    """2 targets x 3 clips: every pair ok with animate's outputs, the decimated target and the shuffled clip
-    registered exactly once each (the job's registration lines), the MLflow run logged; then anny x
-    shuffled_walk by jobs/animate.py alone gives the same frames, GLB and record, with the job's kept fit."""
+    """2 targets x 4 clips: every pair ok with animate's outputs, the decimated target and the shuffled clip
+    registered exactly once each (the job's registration lines), the walk played from its glTF as from its
+    frames, the MLflow run logged; then anny x shuffled_walk by jobs/animate.py alone gives the same frames, GLB
+    and record, with the job's kept fit."""
     out = tmp_path / "library_out"
     job = subprocess.run(retarget_command(library / "targets", library / "clips", out),
                          env=job_env(ray_address, tmp_path), capture_output=True, text=True, timeout=600)
@@ -83,9 +89,9 @@ def test_a_library_is_one_job_each_foreign_mesh_registered_once_and_a_pair_equal
     assert len(registered) == 2, lines
     assert sum(line.startswith("registered target decimated onto Anny") for line in registered) == 1
     assert sum(line.startswith("registered clip shuffled_walk onto Anny") for line in registered) == 1
-    assert sum(line.startswith("ok ") for line in lines) == 6 and "6 of 6 ok" in job.stdout
+    assert sum(line.startswith("ok ") for line in lines) == 8 and "8 of 8 ok" in job.stdout
     rows = summary_rows(out)
-    assert len(rows) == 6 and {row["status"] for row in rows.values()} == {"ok"}
+    assert len(rows) == 8 and {row["status"] for row in rows.values()} == {"ok"}
     for (target, clip), row in rows.items():
         pair = out / target / clip
         assert row["frames"] == "4" and row["self_check"].startswith("trusted")
@@ -93,13 +99,17 @@ def test_a_library_is_one_job_each_foreign_mesh_registered_once_and_a_pair_equal
         assert (pair / "animation.glb").is_file() and (pair / "preview.gif").is_file()
         assert bool(row["fit_mm"]) == (target == "decimated" or clip == "shuffled_walk")
     assert not [p for p in out.rglob(".*") if p.name != ".lock"]  # no staging left behind
+    for target in ("anny", "decimated"):
+        for name in sorted(p.name for p in (out / target / "walk" / "frames").iterdir()):
+            np.testing.assert_allclose(*(np.loadtxt(out / target / clip / "frames" / name, usecols=(1, 2, 3),
+                                                    comments=("#", "f")) for clip in ("walk", "walk_glb")), atol=1e-5)
 
     from pipeline.tracking import find_job_run
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     tracker = find_job_run(f"retarget-{out.name}", out=out)
     metrics = tracker.client.get_run(tracker.run_id).data.metrics
-    assert metrics["pairs_ok"] == 6 and metrics["pair/decimated/walk/frames"] == 4
+    assert metrics["pairs_ok"] == 8 and metrics["pair/decimated/walk/frames"] == 4
     assert "summary.csv" in [a.path for a in tracker.client.list_artifacts(tracker.run_id)]
 
     from aniformer.cli.exits import run

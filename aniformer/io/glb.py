@@ -10,9 +10,11 @@ skinned writer (rigged.glb) is ``aniformer.io.rigged_glb``, on this module's buf
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import struct
+import urllib.parse
 from collections.abc import Callable
 from pathlib import Path
 
@@ -260,30 +262,71 @@ def write_glb_file(path: Path, gltf: dict, blobs: list[np.ndarray | bytes]) -> P
     return path
 
 
+_COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+_ROW = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+
+
 def read_document(path: str | os.PathLike) -> tuple[dict, Callable[[int], np.ndarray]]:
-    """A GLB's JSON and a function from accessor index to its array (rows of ``type``'s components)."""
-    data = Path(path).read_bytes()
-    magic, version, length = struct.unpack_from("<III", data, 0)
-    if magic != _GLB_MAGIC or version != 2 or length != len(data):
-        raise ValueError(f"{path}: not a binary glTF 2.0 file")
-    json_len = struct.unpack_from("<I", data, 12)[0]
-    gltf = json.loads(data[20:20 + json_len])
-    bin_start = 20 + json_len + 8
-    binary = data[bin_start:bin_start + struct.unpack_from("<I", data, 20 + json_len)[0]]
-    sizes = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}
-    dtypes = {_FLOAT: np.float32, UINT: np.uint32, USHORT: np.uint16}
+    """A glTF's JSON (``.glb``, or ``.gltf`` with embedded or side-by-side buffers) and a function from accessor
+    index to its array (rows of ``type``'s components; normalised integers as floats in [0, 1] or [-1, 1];
+    strides, sparse values and accessors without data as the glTF 2.0 specification reads them). `ValueError`
+    for a file that is not glTF 2.0 or whose data cannot be read."""
+    path = Path(path)
+    data = path.read_bytes()
+    if data[:4] == struct.pack("<I", _GLB_MAGIC):
+        magic, version, length = struct.unpack_from("<III", data, 0)
+        if version != 2 or length != len(data):
+            raise ValueError(f"{path}: not a binary glTF 2.0 file")
+        json_len = struct.unpack_from("<I", data, 12)[0]
+        gltf = json.loads(data[20:20 + json_len])
+        bin_start = 20 + json_len + 8
+        chunk = data[bin_start:bin_start + struct.unpack_from("<I", data, 20 + json_len)[0]] if bin_start <= len(data) else b""
+    else:
+        gltf, chunk = json.loads(data), b""
+    if not isinstance(gltf, dict) or not str(gltf.get("asset", {}).get("version", "")).startswith("2."):
+        raise ValueError(f"{path}: not a glTF 2.0 file")
+    buffers = [_buffer_bytes(path, buffer, chunk) for buffer in gltf.get("buffers", [])]
+
+    def view_array(view_index: int, offset: int, dtype: np.dtype, count: int, row: int) -> np.ndarray:
+        view = gltf["bufferViews"][view_index]
+        stride = view.get("byteStride") or dtype.itemsize * row
+        start = view.get("byteOffset", 0) + offset
+        return np.ndarray((count, row), dtype, buffers[view["buffer"]], start, (stride, dtype.itemsize)).copy()
 
     def accessor(i: int) -> np.ndarray:
         a = gltf["accessors"][i]
-        view = gltf["bufferViews"][a["bufferView"]]
-        dtype = np.dtype(dtypes[a["componentType"]])
-        row = dtype.itemsize * sizes[a["type"]]
-        stride = view.get("byteStride", row)  # our writers' strides are tight, or whole rows
-        start = view.get("byteOffset", 0) + a.get("byteOffset", 0)
-        arr = np.frombuffer(binary, dtype, a["count"] * stride // dtype.itemsize, start)
-        return arr.reshape(a["count"], sizes[a["type"]]) if a["type"] != "SCALAR" else arr
+        dtype, row = np.dtype(_COMPONENTS[a["componentType"]]), _ROW[a["type"]]
+        if "bufferView" in a:
+            arr = view_array(a["bufferView"], a.get("byteOffset", 0), dtype, a["count"], row)
+        else:
+            arr = np.zeros((a["count"], row), dtype)
+        if "sparse" in a:
+            sparse = a["sparse"]
+            index = sparse["indices"]
+            rows = view_array(index["bufferView"], index.get("byteOffset", 0),
+                              np.dtype(_COMPONENTS[index["componentType"]]), sparse["count"], 1)[:, 0]
+            values = sparse["values"]
+            arr[rows] = view_array(values["bufferView"], values.get("byteOffset", 0), dtype, sparse["count"], row)
+        if a.get("normalized") and dtype.kind in "iu":
+            arr = np.maximum(arr / float(np.iinfo(dtype).max), -1.0)
+        return arr if a["type"] != "SCALAR" else arr[:, 0]
 
     return gltf, accessor
+
+
+def _buffer_bytes(path: Path, buffer: dict, chunk: bytes) -> bytes:
+    """A buffer's bytes: the GLB's binary chunk, a base64 data URI, or a file beside ``path`` (never outside
+    its folder: a file names no other place to read)."""
+    uri = buffer.get("uri")
+    if uri is None:
+        return chunk
+    if uri.startswith("data:"):
+        return base64.b64decode(uri.split(",", 1)[1])
+    folder = path.parent.resolve()
+    source = (folder / urllib.parse.unquote(uri)).resolve()
+    if folder not in source.parents:
+        raise ValueError(f"{path}: buffer {uri!r} is outside the file's folder")
+    return source.read_bytes()
 
 
 def read_glb(path: str | os.PathLike) -> dict:

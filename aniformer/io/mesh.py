@@ -4,8 +4,9 @@ Vertices are `(V, 3)` float32 in metres (z up), faces `(F, 3)` int64. Files with
 polygons are triangulated on load (fanned); anything else that is not a usable triangle mesh is
 refused with a one-line `MeshError`. OBJ files are read here, not by trimesh, because trimesh's
 OBJ loader drops vertices that no face references (even with ``process=False``): every ``v`` line
-is kept, in file order. Files in centimetres or millimetres are scaled to metres by ``unit``;
-`load_body_mesh` tells m, cm and mm apart by a body's size.
+is kept, in file order. glTF files are read as a viewer shows them (`aniformer.io.gltf_scene`: skins,
+node hierarchies and morph targets as the specification defines them). Files in centimetres or
+millimetres are scaled to metres by ``unit``; `load_body_mesh` tells m, cm and mm apart by a body's size.
 """
 
 from __future__ import annotations
@@ -23,6 +24,14 @@ from aniformer.errors import MeshError
 from aniformer.io.files import atomic_path
 
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
+_AS_GLTF = ": export it as glTF 2.0 (.glb; Blender: File > Export > glTF 2.0), a clip with its animation"
+FORMAT_HINTS = {  # what to do with the formats characters and motion most often come in besides these
+    **dict.fromkeys((".fbx", ".dae", ".blend", ".usd", ".usda", ".usdc", ".usdz", ".abc", ".3ds", ".ma", ".mb",
+                     ".max", ".c4d"), _AS_GLTF),
+    ".bvh": ": a BVH is a skeleton's motion without a mesh; play it on a skinned character in Blender and export "
+            "that as an animated glTF 2.0 (.glb)",
+    ".npz": ": body-model parameters (AMASS, SMPL) are not meshes; export the posed meshes (OBJ frames or a .glb)",
+}
 DEFAULT_MAX_VERTICES = 2_000_000
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per file unit
 HUMAN_EXTENT = (0.4, 3.0)  # metres: a body's largest extent, a crouching child's to a tall adult's arm span
@@ -128,13 +137,17 @@ def load_body_mesh(path: str | os.PathLike, max_vertices: int = DEFAULT_MAX_VERT
     m, cm and mm in which the body's largest extent is a human's (``HUMAN_EXTENT``; the three ranges do not
     overlap), `MeshError` if none is."""
     vertices, faces = _read_mesh(Path(path))
-    read_as = (unit, "--unit") if unit != "auto" else _body_unit(vertices, path)
+    read_as = body_unit(vertices, path, unit)
     vertices = vertices * UNITS[read_as[0]]
     validate_mesh(vertices, faces, str(path), max_vertices)
     return vertices.astype(np.float32), faces, read_as
 
 
-def _body_unit(vertices: np.ndarray, path: str | os.PathLike) -> tuple[str, str]:
+def body_unit(vertices: np.ndarray, path: str | os.PathLike, unit: str = "auto") -> tuple[str, str]:
+    """(unit, why) of a body's ``vertices`` in its file's unit: ``unit`` as given, or for ``"auto"`` the one of m,
+    cm and mm its largest extent is a human's in (``HUMAN_EXTENT``), `MeshError` if none."""
+    if unit != "auto":
+        return unit, "--unit"
     extent = float(np.ptp(vertices, axis=0).max()) if len(vertices) else float("nan")
     if not np.isfinite(extent):
         return "m", "not measurable"  # validate_mesh refuses the mesh, naming what is wrong with it
@@ -150,11 +163,19 @@ def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if not path.is_file():
         raise MeshError(f"{path}: no such file")
     if path.suffix.lower() not in MESH_SUFFIXES:
-        raise MeshError(f"{path}: unsupported mesh format (use one of {', '.join(MESH_SUFFIXES)})")
+        hint = FORMAT_HINTS.get(path.suffix.lower(), "")
+        raise MeshError(f"{path}: unsupported mesh format (use one of {', '.join(MESH_SUFFIXES)}){hint}")
     if path.stat().st_size == 0:
         raise MeshError(f"{path}: file is empty")
     try:
-        vertices, faces = read_obj(path) if path.suffix.lower() == ".obj" else _read_with_trimesh(path)
+        if path.suffix.lower() == ".obj":
+            vertices, faces = read_obj(path)
+        elif path.suffix.lower() in GLTF_SUFFIXES:
+            from aniformer.io.gltf_scene import still_mesh  # it imports this module
+
+            vertices, faces = still_mesh(path)
+        else:
+            vertices, faces = _read_with_trimesh(path)
     except OSError as e:
         raise MeshError(f"{path}: cannot read mesh ({e.strerror})") from None
     return vertices, faces
