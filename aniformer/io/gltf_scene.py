@@ -70,7 +70,7 @@ class GltfClip:
 
     @_malformed_is_mesh_error
     def sample(self, count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(vertices ``(N, V, 3)`` float64 in the file's axes and unit, faces ``(F, 3)``) of the first ``count``
+        """(vertices ``(N, V, 3)`` float32 in the file's axes and unit, faces ``(F, 3)``) of the first ``count``
         frames (default all)."""
         gltf, accessor = _document(self.path)
         animation = gltf["animations"][self.index]
@@ -85,7 +85,7 @@ def still_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     without its animation, or a one-line `MeshError`."""
     gltf, accessor = _document(Path(path))
     vertices, faces = _shown_meshes(Path(path), gltf, accessor, None, np.zeros(1))
-    return vertices[0], faces
+    return vertices[0].astype(np.float64), faces
 
 
 @_malformed_is_mesh_error
@@ -159,8 +159,8 @@ def _shown_meshes(path: Path, gltf: dict, accessor, animation: dict | None,
         if len(when):
             moved, triangles = _node_positions(gltf, accessor, n, [w[when] for w in world],
                                                None if weights[n] is None else weights[n][when])
-            positions[n] = (dict(zip(when.tolist(), moved)), triangles)
-    frames, faces = [], None
+            positions[n] = (dict(zip(when.tolist(), moved.astype(np.float32))), triangles)  # glTF's precision
+    frames, faces = None, None
     for k in range(len(times)):
         on = [n for column, n in enumerate(instances) if shown[k, column]]
         if not on:
@@ -172,8 +172,10 @@ def _shown_meshes(path: Path, gltf: dict, accessor, animation: dict | None,
         elif not np.array_equal(triangles, faces):
             raise MeshError(f"{path}: the meshes shown change at {times[k]:.3f} s of the animation "
                             "(a driving clip is one mesh in every frame)")
-        frames.append(np.concatenate([positions[n][0][k] for n in on]))
-    return np.stack(frames), faces
+        if frames is None:
+            frames = np.empty((len(times), offsets[-1], 3), np.float32)
+        frames[k] = np.concatenate([positions[n][0][k] for n in on])
+    return frames, faces
 
 
 def _scene_order(gltf: dict) -> list[int]:
