@@ -6,7 +6,7 @@
 
 ``--targets`` is a folder of meshes (OBJ, PLY, GLB, ...), ``--clips`` a folder whose sub-folders are driving
 sequences (each what jobs/animate.py's ``--driving`` takes) and whose animated .glb/.gltf files are clips too
-(each its first animation). Each pair gets ``OUT/<target stem>/<clip>/`` with
+(a file of several animations one clip per animation, ``<stem>_<animation>``). Each pair gets ``OUT/<target stem>/<clip>/`` with
 what jobs/animate.py writes for that pair alone (frames/, animation.glb, preview.gif, animation.json; with
 ``--rig`` rigged.glb and motion.bvh), staged and renamed into place when complete; ``OUT/summary.csv`` has a
 row per pair: target, clip, status (ok, refused by the self-check, error), frames, seconds, fit error (mm),
@@ -37,7 +37,7 @@ from aniformer.errors import UserError
 from aniformer.geometry import UP_AXES
 from aniformer.io.mesh import DEFAULT_MAX_VERTICES, UNITS
 from jobs import animate
-from pipeline.motion_library import find_library, log_run, pair_line, write_summary
+from pipeline.motion_library import ClipSource, find_library, log_run, pair_line, write_summary
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -67,10 +67,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def pair_options(args: argparse.Namespace, target: str, clip: str, out: Path) -> AnimateOptions:
+def pair_options(args: argparse.Namespace, target: str, clip: ClipSource, out: Path) -> AnimateOptions:
     """jobs/animate.py's options for one pair: what `animate.py` would be run with for it alone, read by its parser
     (so with its defaults)."""
-    argv = ["--checkpoint", args.checkpoint, "--target", target, "--driving", clip, "--out", str(out), "--no-progress",
+    argv = ["--checkpoint", args.checkpoint, "--target", target, "--driving", clip.path, "--out", str(out),
+            "--no-progress", *(["--animation", clip.animation] if clip.animation is not None else []),
             "--unit", args.unit, "--up", args.up, "--max-vertices", str(args.max_vertices),
             "--max-frames", str(args.max_frames)]
     argv += ["--rig", "--bone-names", args.bone_names] * args.rig + ["--force"] * args.force
@@ -116,12 +117,12 @@ def main(argv: list[str]) -> None:
 
     rows, todo = {}, []
     for target, target_path in targets.items():
-        for clip, clip_path in clips.items():
+        for clip, source in clips.items():
             pair_out = out / target / clip
             if (pair_out / "animation.json").is_file():  # complete: a pair's folder appears whole or not at all
                 rows[target, clip] = {"target": target, "clip": clip, **pair_row(pair_out, "ok")}
             else:
-                todo.append(Pair(target, clip, pair_out, pair_options(args, target_path, clip_path, pair_out)))
+                todo.append(Pair(target, clip, pair_out, pair_options(args, target_path, source, pair_out)))
     print(f"retarget {len(targets)} targets x {len(clips)} clips into {out}: {len(rows)} pairs complete already, "
           f"{len(todo)} to do", flush=True)
     started = time.perf_counter()

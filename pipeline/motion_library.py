@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 from aniformer.errors import UserError
@@ -15,10 +16,20 @@ from aniformer.io.mesh import GLTF_SUFFIXES, MESH_SUFFIXES
 COLUMNS = ("target", "clip", "status", "frames", "seconds", "fit_mm", "self_check")
 
 
+@dataclass(frozen=True)
+class ClipSource:
+    """Where a clip of the library comes from: a folder of frames or a glTF file, and for a glTF of several
+    animations the one it is (its index, as jobs/animate.py's ``--animation`` takes it)."""
+
+    path: str
+    animation: str | None = None
+
+
 def find_library(targets: str, clips: str) -> tuple[dict[str, str], dict[str, str]]:
-    """({target stem: path}, {clip name: its folder of frames, or its animated glTF file (named by its stem)}) of
-    the folders ``targets`` and ``clips``, in natural order; `UserError` for an empty or missing folder, or two
-    targets or clips of one name (their outputs would collide)."""
+    """({target stem: path}, {clip name: its `ClipSource`}) of the folders ``targets`` and ``clips``, in natural
+    order: a sub-folder of frames is a clip of its name, a glTF file a clip of its stem, or with several
+    animations one clip per animation (``<stem>_<animation name>``). `UserError` for an empty or missing folder,
+    or two targets or clips of one name (their outputs would collide)."""
     targets_dir, clips_dir = Path(targets).expanduser(), Path(clips).expanduser()
     for flag, folder in (("--targets", targets_dir), ("--clips", clips_dir)):
         if not folder.is_dir():
@@ -34,16 +45,30 @@ def find_library(targets: str, clips: str) -> tuple[dict[str, str], dict[str, st
     for path in sorted(clips_dir.iterdir(), key=lambda p: natural_key(p.name)):
         if path.name.startswith(".") or not (path.is_dir() or path.suffix.lower() in GLTF_SUFFIXES):
             continue
-        name = path.name if path.is_dir() else path.stem
-        if name in clips:
-            raise UserError(f"--clips: {clips[name]} and {path} are both clip {name}, their outputs would share "
-                            f"OUT/<target>/{name}/: rename one")
-        clips[name] = str(path.resolve())
+        for name, source in _clips_of(path):
+            if name in clips:
+                raise UserError(f"--clips: {clips[name].path} and {path} both give clip {name}, their outputs would "
+                                f"share OUT/<target>/{name}/: rename one")
+            clips[name] = source
     if not targets:
         raise UserError(f"--targets {targets_dir}: no mesh files ({', '.join(MESH_SUFFIXES)})")
     if not clips:
         raise UserError(f"--clips {clips_dir}: no clips (a sub-folder of frames, or an animated .glb/.gltf, each)")
     return targets, clips
+
+
+def _clips_of(path: Path) -> list[tuple[str, ClipSource]]:
+    """(name, source) of the clips a folder or glTF file in ``--clips`` gives."""
+    if path.is_dir():
+        return [(path.name, ClipSource(str(path.resolve())))]
+    from aniformer.io.gltf_scene import animation_names
+
+    names = animation_names(path)
+    if len(names) < 2:
+        return [(path.stem, ClipSource(str(path.resolve())))]
+    safe = [re.sub(r"[^\w.-]+", "_", name).strip("._") for name in names]
+    return [(f"{path.stem}_{name if name and safe.count(name) == 1 else f'{name}_{k}'.strip('_')}",
+             ClipSource(str(path.resolve()), str(k))) for k, name in enumerate(safe)]
 
 
 def write_summary(path: Path, rows: list[dict]) -> None:

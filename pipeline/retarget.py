@@ -24,6 +24,7 @@ import numpy as np
 import ray
 
 from aniformer.animation_run import AnimateOptions
+from pipeline.motion_library import ClipSource
 
 MAX_RETRIES = 3  # a task whose worker died is run again this many times (never one that raised)
 
@@ -83,15 +84,17 @@ def load_target(path: str, up: str, unit: str, max_vertices: int):
 
 
 @ray.remote(num_returns=2, max_retries=MAX_RETRIES)
-def load_clip(path: str, up: str, unit: str, max_vertices: int, max_frames: int, trained_topology: str):
-    """({"frames", "anny": its Anny topology or None, "topology": the one the model runs on for it}, the `Clip`)."""
+def load_clip(path: str, animation: str | None, up: str, unit: str, max_vertices: int, max_frames: int,
+              trained_topology: str):
+    """({"frames", "anny": its Anny topology or None, "topology": the one the model runs on for it}, the `Clip` of
+    ``path``'s frames, or of its glTF ``animation``)."""
     from aniformer.animate import driving_clip, driving_files, driving_fps, driving_unit, load_driving
     from aniformer.animation_run import anny_topology, input_axis
     from aniformer.errors import UserError
     from aniformer.geometry import to_z_up
 
     files = driving_files(path)
-    clip = driving_clip(files)
+    clip = driving_clip(files, animation=animation)
     if (clip.frames if clip is not None else len(files)) > max_frames:
         raise UserError(f"{path}: {clip.frames if clip is not None else len(files):,} frames exceeds --max-frames "
                         f"{max_frames:,}")
@@ -232,9 +235,9 @@ class Pair:
     options: AnimateOptions  # jobs/animate.py's options for this pair alone
 
 
-def schedule(pairs: list[Pair], targets: dict[str, str], clips: dict[str, str], options: dict, checkpoint: bytes | None,
-             state: dict, registers: bool, actors: int, events):
-    """Submit the whole graph for ``pairs`` (``targets``/``clips``: name -> path; ``options``: up, unit,
+def schedule(pairs: list[Pair], targets: dict[str, str], clips: dict[str, ClipSource], options: dict,
+             checkpoint: bytes | None, state: dict, registers: bool, actors: int, events):
+    """Submit the whole graph for ``pairs`` (``targets``: name -> path, ``clips``: name -> source; ``options``: up, unit,
     max_vertices, max_frames; ``checkpoint``: its bytes, None for the skinned transfer) and yield ``(pair, row)``
     as each pair finishes, row["status"] ok, refused or error (with "error", one line). Each registration is
     reported to ``events(line)`` once it is made."""
@@ -242,7 +245,8 @@ def schedule(pairs: list[Pair], targets: dict[str, str], clips: dict[str, str], 
     common = (options["up"], options["unit"], options["max_vertices"])
     target_refs = {name: load_target.remote(path, *common) for name, path in targets.items()
                    if any(p.target == name for p in pairs)}
-    clip_refs = {name: load_clip.remote(path, *common, options["max_frames"], trained) for name, path in clips.items()
+    clip_refs = {name: load_clip.remote(source.path, source.animation, *common, options["max_frames"], trained)
+                 for name, source in clips.items()
                  if any(p.clip == name for p in pairs)}
     target_topology, clip_info, failed = {}, {}, {}
     for name, (info, _) in target_refs.items():

@@ -25,7 +25,7 @@ TOPOLOGY = "notoes_collapse3pc"  # the shipped model's
 @pytest.fixture(scope="module")
 def library(tmp_path_factory, job_main) -> Path:
     """targets/{anny,decimated}.obj, clips/{walk,crouch,shuffled_walk}/ (4 frames each) and clips/walk_glb.glb (the
-    walk as one animated glTF), as a user has them."""
+    walk as a glTF of two animations), as a user has them."""
     import trimesh
 
     from aniformer.cli.exits import run
@@ -48,7 +48,9 @@ def library(tmp_path_factory, job_main) -> Path:
     from aniformer.animate import driving_files, load_driving
     from aniformer.io.glb import write_glb
 
-    write_glb(clips / "walk_glb.glb", *load_driving(driving_files(clips / "walk")))  # the walk as one animated file
+    # the walk as one glTF of two animations (the second a copy): a clip each
+    with_second_animation(write_glb(clips / "walk_glb.glb", *load_driving(driving_files(clips / "walk")), name="walk"),
+                          "walk again")
     order = np.random.default_rng(0).permutation(369)
     (clips / "shuffled_walk").mkdir()
     for frame in sorted((clips / "walk").glob("*.obj")):
@@ -56,6 +58,31 @@ def library(tmp_path_factory, job_main) -> Path:
         trimesh.Trimesh(vertices[order], np.argsort(order)[faces], process=False).export(
             clips / "shuffled_walk" / frame.name)
     return root
+
+
+def with_second_animation(path: Path, name: str) -> Path:
+    """``path``, a GLB of one animation, with a copy of it named ``name`` added."""
+    import struct
+
+    from aniformer.io.glb import read_document, write_glb_file
+
+    gltf, _ = read_document(path)
+    data = path.read_bytes()
+    copy = json.loads(json.dumps(gltf["animations"][0]))
+    copy["name"] = name
+    gltf["animations"].append(copy)
+    return write_glb_file(path, gltf, [data[20 + struct.unpack_from("<I", data, 12)[0] + 8:]])
+
+
+def test_a_gltf_of_several_animations_is_a_clip_each(library):
+    from pipeline.motion_library import ClipSource, find_library
+
+    _, clips = find_library(str(library / "targets"), str(library / "clips"))
+    glb = str((library / "clips" / "walk_glb.glb").resolve())
+    assert clips == {"walk": ClipSource(str((library / "clips" / "walk").resolve())),
+                     "crouch": ClipSource(str((library / "clips" / "crouch").resolve())),
+                     "shuffled_walk": ClipSource(str((library / "clips" / "shuffled_walk").resolve())),
+                     "walk_glb_walk": ClipSource(glb, "0"), "walk_glb_walk_again": ClipSource(glb, "1")}
 
 
 def retarget_command(targets: Path, clips: Path, out: Path) -> list[str]:
@@ -76,7 +103,7 @@ def summary_rows(out: Path) -> dict[tuple[str, str], dict]:
 @pytest.mark.ray
 def test_a_library_is_one_job_each_foreign_mesh_registered_once_and_a_pair_equals_animate(
         library, ray_address, tmp_path, job_main, monkeypatch):
-    """2 targets x 4 clips: every pair ok with animate's outputs, the decimated target and the shuffled clip
+    """2 targets x 5 clips: every pair ok with animate's outputs, the decimated target and the shuffled clip
     registered exactly once each (the job's registration lines), the walk played from its glTF as from its
     frames, the MLflow run logged; then anny x shuffled_walk by jobs/animate.py alone gives the same frames, GLB
     and record, with the job's kept fit."""
@@ -89,9 +116,9 @@ def test_a_library_is_one_job_each_foreign_mesh_registered_once_and_a_pair_equal
     assert len(registered) == 2, lines
     assert sum(line.startswith("registered target decimated onto Anny") for line in registered) == 1
     assert sum(line.startswith("registered clip shuffled_walk onto Anny") for line in registered) == 1
-    assert sum(line.startswith("ok ") for line in lines) == 8 and "8 of 8 ok" in job.stdout
+    assert sum(line.startswith("ok ") for line in lines) == 10 and "10 of 10 ok" in job.stdout
     rows = summary_rows(out)
-    assert len(rows) == 8 and {row["status"] for row in rows.values()} == {"ok"}
+    assert len(rows) == 10 and {row["status"] for row in rows.values()} == {"ok"}
     for (target, clip), row in rows.items():
         pair = out / target / clip
         assert row["frames"] == "4" and row["self_check"].startswith("trusted")
@@ -100,16 +127,19 @@ def test_a_library_is_one_job_each_foreign_mesh_registered_once_and_a_pair_equal
         assert bool(row["fit_mm"]) == (target == "decimated" or clip == "shuffled_walk")
     assert not [p for p in out.rglob(".*") if p.name != ".lock"]  # no staging left behind
     for target in ("anny", "decimated"):
-        for name in sorted(p.name for p in (out / target / "walk" / "frames").iterdir()):
-            np.testing.assert_allclose(*(np.loadtxt(out / target / clip / "frames" / name, usecols=(1, 2, 3),
-                                                    comments=("#", "f")) for clip in ("walk", "walk_glb")), atol=1e-5)
+        for index, clip in enumerate(("walk_glb_walk", "walk_glb_walk_again")):
+            played = json.loads((out / target / clip / "animation.json").read_text())["driving_animation"]
+            assert (played["index"], played["of"]) == (index, 2)
+            for name in sorted(p.name for p in (out / target / "walk" / "frames").iterdir()):
+                np.testing.assert_allclose(*(np.loadtxt(out / target / c / "frames" / name, usecols=(1, 2, 3),
+                                                        comments=("#", "f")) for c in ("walk", clip)), atol=1e-5)
 
     from pipeline.tracking import find_job_run
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     tracker = find_job_run(f"retarget-{out.name}", out=out)
     metrics = tracker.client.get_run(tracker.run_id).data.metrics
-    assert metrics["pairs_ok"] == 8 and metrics["pair/decimated/walk/frames"] == 4
+    assert metrics["pairs_ok"] == 10 and metrics["pair/decimated/walk/frames"] == 4
     assert "summary.csv" in [a.path for a in tracker.client.list_artifacts(tracker.run_id)]
 
     from aniformer.cli.exits import run

@@ -100,7 +100,7 @@ def gltf_clip(path: str | os.PathLike, fps: float | None = None, animation: str 
         return None
     gltf, accessor = _document(path)
     animations = gltf.get("animations") or []
-    names = [a.get("name") or f"animation {k}" for k, a in enumerate(animations)]
+    names = _names(animations)
     if animation is None:
         index = 0
     elif animation in names:
@@ -122,6 +122,16 @@ def gltf_clip(path: str | os.PathLike, fps: float | None = None, animation: str 
     else:
         frames = int(np.floor((end - start) * rate + 1e-6)) + 1
     return GltfClip(path, index, names[index], len(animations), rate, frames)
+
+
+@_malformed_is_mesh_error
+def animation_names(path: str | os.PathLike) -> list[str]:
+    """The names of a glTF file's animations, in order (``animation <index>`` for an unnamed one)."""
+    return _names(_document(Path(path))[0].get("animations") or [])
+
+
+def _names(animations: list[dict]) -> list[str]:
+    return [a.get("name") or f"animation {k}" for k, a in enumerate(animations)]
 
 
 def _document(path: Path) -> tuple[dict, callable]:
