@@ -4,10 +4,12 @@ own evaluation of every frame beside it: what ``aniformer.io.gltf_clip`` must re
     blender -b --factory-startup --python-exit-code 1 --python bench/blender_skinned_clip.py -- clip.glb clip.npy
 
 Runs inside Blender (Debian's 3.4.1, headless) with Blender's Python and numpy. The scene: a 1 m tube of
-rings along z, skinned to a chain of three bones with weights blended across each joint; the armature object
-turned, scaled and moving (root motion through the hierarchy), the upper bones bending with Bezier keys, at
-24 fps over frames 1 … 25. Exported with Blender's glTF exporter (y up, its default sampling of the
-animation), and ``clip.npy`` holds the mesh evaluated in Blender's world space (z up) at each frame ``(25, V, 3)``.
+rings along z, skinned to a chain of three bones with weights blended across each joint, with a shape key
+(its middle bulging) keyed on and off; a box parented to the top bone (a hat, moved rigidly by it); the
+armature object turned, scaled and moving (root motion through the hierarchy), the upper bones bending with
+Bezier keys, at 24 fps over frames 1 … 25. Exported with Blender's glTF exporter (y up, its default sampling
+of the animation: morph targets and their weights, the hat a child node of the bone's), and ``clip.npy``
+holds the tube's and the hat's vertices evaluated in Blender's world space (z up) at each frame ``(25, V, 3)``.
 """
 
 from __future__ import annotations
@@ -31,6 +33,29 @@ def tube() -> bpy.types.Object:
     mesh.from_pydata(vertices, [], faces)
     obj = bpy.data.objects.new("tube", mesh)
     bpy.context.scene.collection.objects.link(obj)
+    return obj
+
+
+def bulge(body: bpy.types.Object) -> None:
+    """A shape key pushing the middle rings out by half their radius, keyed 0, 1, 0."""
+    body.shape_key_add(name="basis")
+    key = body.shape_key_add(name="bulge")
+    for vertex, point in zip(body.data.vertices, key.data):
+        if 0.3 < vertex.co.z < 0.7:
+            point.co = (1.5 * vertex.co.x, 1.5 * vertex.co.y, vertex.co.z)
+    for frame, value in ((1, 0.0), (13, 1.0), (25, 0.0)):
+        key.value = value
+        key.keyframe_insert("value", frame=frame)
+
+
+def hat(rig: bpy.types.Object) -> bpy.types.Object:
+    """A 10 cm box on the top bone, moved rigidly by it."""
+    mesh = bpy.data.meshes.new("hat")
+    corners = [(x, y, z) for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z in (0.0, 0.1)]
+    mesh.from_pydata(corners, [], [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)])
+    obj = bpy.data.objects.new("hat", mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    obj.parent, obj.parent_type, obj.parent_bone = rig, "BONE", "bone2"
     return obj
 
 
@@ -80,17 +105,20 @@ def animate(rig: bpy.types.Object) -> None:
             pose.keyframe_insert("rotation_axis_angle")
 
 
-def evaluated(body: bpy.types.Object) -> np.ndarray:
+def evaluated(objects: list[bpy.types.Object]) -> np.ndarray:
     scene, frames = bpy.context.scene, []
     for frame in range(1, FRAMES + 1):
         scene.frame_set(frame)
-        moved = body.evaluated_get(bpy.context.evaluated_depsgraph_get())
-        mesh = moved.to_mesh()
-        co = np.empty(3 * len(mesh.vertices))
-        mesh.vertices.foreach_get("co", co)
-        world = np.array(moved.matrix_world)
-        frames.append(co.reshape(-1, 3) @ world[:3, :3].T + world[:3, 3])
-        moved.to_mesh_clear()
+        parts = []
+        for obj in objects:
+            moved = obj.evaluated_get(bpy.context.evaluated_depsgraph_get())
+            mesh = moved.to_mesh()
+            co = np.empty(3 * len(mesh.vertices))
+            mesh.vertices.foreach_get("co", co)
+            world = np.array(moved.matrix_world)
+            parts.append(co.reshape(-1, 3) @ world[:3, :3].T + world[:3, 3])
+            moved.to_mesh_clear()
+        frames.append(np.concatenate(parts))
     return np.stack(frames)
 
 
@@ -101,9 +129,14 @@ def main() -> None:
     scene.render.fps, scene.frame_start, scene.frame_end = 24, 1, FRAMES
     body, rig = tube(), armature()
     skin(body, rig)
+    bulge(body)
+    top = hat(rig)
     animate(rig)
-    bpy.ops.export_scene.gltf(filepath=glb, export_format="GLB", export_animations=True, export_skins=True)
-    np.save(npy, evaluated(body))
+    # the armature's and the shape key's actions as one glTF animation, the clip a user made
+    bpy.ops.export_scene.gltf(filepath=glb, export_format="GLB", export_animations=True, export_skins=True,
+                              export_morph=True, export_nla_strips=False,
+                              export_nla_strips_merged_animation_name="bend")
+    np.save(npy, evaluated([body, top]))
 
 
 main()
