@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,9 +31,8 @@ TRIANGLES = 4  # glTF's primitive mode; points and lines (0-3) are not a surface
 # required extensions that change how geometry is stored (KHR_mesh_quantization's are plain accessors here; the
 # texture and material ones leave the geometry as it is)
 UNREAD_EXTENSIONS = {"KHR_draco_mesh_compression", "EXT_meshopt_compression", "EXT_mesh_gpu_instancing"}
-
-
-MALFORMED = (KeyError, IndexError, TypeError, ValueError, AttributeError)  # what a glTF of wrong structure raises here
+# what a glTF of wrong structure or values raises here (an infinite key time: OverflowError)
+MALFORMED = (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError)
 
 
 def _one_line(error: Exception) -> str:
@@ -112,10 +112,11 @@ def gltf_clip(path: str | os.PathLike, fps: float | None = None, animation: str 
                         + (", ".join(repr(n) for n in names) if names else "none"))
     if not animations:
         return None
-    first = animations[index]
-    extras = first.get("extras") if isinstance(first.get("extras"), dict) else {}
-    declared = extras.get("fps") if isinstance(extras.get("fps"), int | float) and extras.get("fps", 0) > 0 else None
-    start, end = _time_span(first, accessor)
+    chosen = animations[index]
+    extras = chosen.get("extras") if isinstance(chosen.get("extras"), dict) else {}
+    declared = extras.get("fps")
+    declared = declared if isinstance(declared, int | float) and not isinstance(declared, bool) and declared > 0 else None
+    start, end = _time_span(chosen, accessor)
     rate = float(fps or declared or 30.0)
     if isinstance(extras.get("frames"), int) and extras["frames"] > 0 and declared and rate == declared:
         frames = extras["frames"]
@@ -134,7 +135,7 @@ def _names(animations: list[dict]) -> list[str]:
     return [a.get("name") or f"animation {k}" for k, a in enumerate(animations)]
 
 
-def _document(path: Path) -> tuple[dict, callable]:
+def _document(path: Path) -> tuple[dict, Callable[[int], np.ndarray]]:
     try:
         gltf, accessor = read_document(path)
     except (OSError, *MALFORMED) as e:
@@ -167,7 +168,7 @@ def _shown_meshes(path: Path, gltf: dict, accessor, animation: dict | None,
     for column, n in enumerate(instances):
         when = np.flatnonzero(shown[:, column])
         if len(when):
-            moved, triangles = _node_positions(gltf, accessor, n, [w[when] for w in world],
+            moved, triangles = _node_positions(path, gltf, accessor, n, [w[when] for w in world],
                                                None if weights[n] is None else weights[n][when])
             positions[n] = (dict(zip(when.tolist(), moved.astype(np.float32))), triangles)  # glTF's precision
     frames, faces = None, None
@@ -265,7 +266,7 @@ def _morph_weights(gltf: dict, channels: dict, times: np.ndarray) -> list[np.nda
     return weights
 
 
-def _node_positions(gltf: dict, accessor, n: int, world: list[np.ndarray], weights: np.ndarray | None):
+def _node_positions(path: Path, gltf: dict, accessor, n: int, world: list[np.ndarray], weights: np.ndarray | None):
     """(world positions ``(N, V, 3)`` of node ``n``'s triangle primitives at each time, their faces)."""
     node = gltf["nodes"][n]
     vertices, faces, offset = [], [], 0
@@ -273,9 +274,10 @@ def _node_positions(gltf: dict, accessor, n: int, world: list[np.ndarray], weigh
         mode = primitive.get("mode", TRIANGLES)
         if mode < TRIANGLES:
             continue
-        if mode != TRIANGLES or "POSITION" not in primitive.get("attributes", {}):
-            raise MeshError(f"glTF mesh {node['mesh']}: only triangle lists are read (mode {mode})")
-        base = accessor(primitive["attributes"]["POSITION"]).astype(np.float64)
+        if mode != TRIANGLES:
+            raise MeshError(f"{path}: glTF mesh {node['mesh']} has triangle strips or fans (mode {mode}); only triangle "
+                            "lists are read: export with triangulated faces")
+        base = accessor(primitive["attributes"]["POSITION"]).astype(np.float64)  # required: else malformed
         targets = [accessor(t["POSITION"]) if "POSITION" in t else np.zeros_like(base) for t in primitive.get("targets", [])]
         local = np.broadcast_to(base, (len(world[n]), *base.shape))
         if targets and weights is not None:
