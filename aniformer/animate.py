@@ -195,8 +195,16 @@ def load_driving(files: list[Path], max_vertices: int = DEFAULT_MAX_VERTICES, un
 FPS_SIDECARS = ("sequence.json", "export.json")  # beside the frames: {"fps": 60, ...}
 
 
-def driving_fps(files: list[Path]) -> float | None:
-    """The frame rate a JSON file beside the driving frames declares (``FPS_SIDECARS``), else None."""
+def driving_frames(files: list[Path], clip: GltfClip | None) -> int:
+    """How many frames a driving sequence has: its glTF animation's as sampled (``clip``), else one per file."""
+    return clip.frames if clip is not None else len(files)
+
+
+def driving_fps(files: list[Path], clip: GltfClip | None = None) -> float | None:
+    """The frame rate of a driving sequence: its glTF animation's as sampled (``clip``), else the one a JSON file
+    beside the frames declares (``FPS_SIDECARS``), else None."""
+    if clip is not None:
+        return clip.fps
     for sidecar in (files[0].parent / name for name in FPS_SIDECARS):
         if not sidecar.is_file():
             continue

@@ -81,17 +81,17 @@ def load_inputs(options: AnimateOptions):
     and faces, fps, name, {role: (unit, why)} of the target and the driver: ``--unit``, else the one their size
     is a body's in), all checked before any work (and before anything is written): frame count, the target mesh,
     the units, the size the GLB would have."""
-    from aniformer.animate import driving_clip, driving_files, driving_fps, driving_unit
+    from aniformer.animate import driving_clip, driving_files, driving_fps, driving_frames, driving_unit
     from aniformer.io.mesh import load_body_mesh
 
     files = driving_files(options.driving)
     clip = driving_clip(files, options.fps, options.animation)
-    frames = clip.frames if clip is not None else len(files)
+    frames = driving_frames(files, clip)
     if frames > options.max_frames:
         raise UserError(f"--driving {options.driving}: {frames:,} frames exceeds --max-frames "
                         f"{options.max_frames:,}")
     target, target_faces, target_unit = load_body_mesh(options.target, options.max_vertices, options.unit)
-    fps = clip.fps if clip is not None else options.fps or driving_fps(files) or 30.0
+    fps = options.fps or driving_fps(files, clip) or 30.0
     name = options.name or f"{Path(options.target).stem}_{files[0].stem if clip is not None else files[0].parent.name}"
     check_glb_size(options, frames, target, target_faces)
     units = {"target": target_unit, "driver": driving_unit(files, clip, options.max_vertices, options.unit)}
@@ -251,13 +251,13 @@ def animate_files(options: AnimateOptions, inputs: tuple, out: Path, device, loa
     (Its animation.json record, the self-check's ``Trust``, seconds of inference.)"""
     from tqdm import tqdm
 
-    from aniformer.animate import load_driving
+    from aniformer.animate import driving_frames, load_driving
     from aniformer.animation_outputs import write_animation  # it imports this module
     from aniformer.geometry import to_z_up
 
     files, clip, target, target_faces, fps, name, units = inputs
     model, state = load_model()
-    with tqdm(total=clip.frames if clip is not None else len(files), unit="frame", desc="load driving",
+    with tqdm(total=driving_frames(files, clip), unit="frame", desc="load driving",
               disable=options.no_progress, file=sys.stderr) as bar:
         driving, driving_faces = load_driving(files, options.max_vertices, units["driver"][0], progress=bar.update,
                                               clip=clip)

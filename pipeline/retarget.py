@@ -88,16 +88,16 @@ def load_clip(path: str, animation: str | None, up: str, unit: str, max_vertices
               trained_topology: str):
     """({"frames", "anny": its Anny topology or None, "topology": the one the model runs on for it}, the `Clip` of
     ``path``'s frames, or of its glTF ``animation``)."""
-    from aniformer.animate import driving_clip, driving_files, driving_fps, driving_unit, load_driving
+    from aniformer.animate import driving_clip, driving_files, driving_fps, driving_frames, driving_unit, load_driving
     from aniformer.animation_run import anny_topology, input_axis
     from aniformer.errors import UserError
     from aniformer.geometry import to_z_up
 
     files = driving_files(path)
     clip = driving_clip(files, animation=animation)
-    if (clip.frames if clip is not None else len(files)) > max_frames:
-        raise UserError(f"{path}: {clip.frames if clip is not None else len(files):,} frames exceeds --max-frames "
-                        f"{max_frames:,}")
+    frames = driving_frames(files, clip)
+    if frames > max_frames:
+        raise UserError(f"{path}: {frames:,} frames exceeds --max-frames {max_frames:,}")
     unit = driving_unit(files, clip, max_vertices, unit)
     driving, faces = load_driving(files, max_vertices, unit[0], clip=clip)
     axis = input_axis(up, files[0], driving, faces)
@@ -105,7 +105,7 @@ def load_clip(path: str, animation: str | None, up: str, unit: str, max_vertices
     anny = anny_topology(driving[0], faces)
     # the topology the model runs on for this clip, as aniformer.animation_run.model_inputs chooses it
     info = {"frames": len(driving), "anny": anny, "topology": anny or trained_topology}
-    return info, Clip(path, driving, faces, clip.fps if clip is not None else driving_fps(files) or 30.0, axis, unit,
+    return info, Clip(path, driving, faces, driving_fps(files, clip) or 30.0, axis, unit,
                       clip.record() if clip is not None else None)
 
 

@@ -157,11 +157,11 @@ def _shown_meshes(path: Path, gltf: dict, accessor, animation: dict | None,
                   times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The meshes shown at ``times`` of ``animation`` (None: still), one mesh per frame: (vertices ``(N, V, 3)``,
     faces)."""
-    nodes = gltf.get("nodes", [])
+    nodes, order = gltf.get("nodes", []), _scene_order(gltf)
     channels = _channels(animation, accessor, times)
-    world = _world_transforms(gltf, _local_transforms(gltf, channels, times))
+    world = _world_transforms(nodes, order, _local_transforms(gltf, channels, times))
     weights = _morph_weights(gltf, channels, times)
-    instances = [n for n in _scene_order(gltf) if "mesh" in nodes[n]]
+    instances = [n for n in order if "mesh" in nodes[n]]
     shown = np.stack([np.full(len(times), True) if "skin" in nodes[n] else np.abs(np.linalg.det(world[n][:, :3, :3]))
                       > HIDDEN_SCALE for n in instances], 1) if instances else np.zeros((len(times), 0), bool)
     positions = {}  # per mesh node: its positions in the frames it is shown in, its faces
@@ -198,12 +198,13 @@ def _scene_order(gltf: dict) -> list[int]:
     else:
         children = {c for node in nodes for c in node.get("children", [])}
         roots = [n for n in range(len(nodes)) if n not in children]
-    order, stack = [], list(reversed(roots))
+    order, seen, stack = [], set(), list(reversed(roots))
     while stack:
         n = stack.pop()
-        if n in order:  # the specification's nodes form trees; this file's would be walked forever
+        if n in seen:  # the specification's nodes form trees; this file's would be walked forever
             raise ValueError(f"node {n} is reached twice: the node hierarchy is not a tree")
         order.append(n)
+        seen.add(n)
         stack.extend(reversed(nodes[n].get("children", [])))
     return order
 
@@ -244,10 +245,10 @@ def _local_transforms(gltf: dict, channels: dict, times: np.ndarray) -> list[np.
     return matrices
 
 
-def _world_transforms(gltf: dict, local: list[np.ndarray]) -> list[np.ndarray]:
-    nodes = gltf.get("nodes", [])
+def _world_transforms(nodes: list[dict], order: list[int], local: list[np.ndarray]) -> list[np.ndarray]:
+    """Per node, its world matrix at each time: its parents' (``order``: parents first) times its own."""
     world = list(local)
-    for n in _scene_order(gltf):
+    for n in order:
         for child in nodes[n].get("children", []):
             world[child] = world[n] @ local[child]
     return world
