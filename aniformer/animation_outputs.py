@@ -162,7 +162,7 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, name: str, 
         "window": inference.window, "combine": inference.combine, "windows": inference.windows,
         "input_center": inference.input_center,
         "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template),
-                              "fit_cached": fit.fit_cached}
+                              "fit_cached": fit.fit_cached, "props": fit.prop_record()}
                        for role, fit in registrations.items()},
         "up": {role: {"axis": axis, "why": why} for role, (axis, why) in axes.items()},
         "units": {role: {"unit": unit, "why": why} for role, (unit, why) in units.items()},

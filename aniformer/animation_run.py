@@ -180,10 +180,12 @@ def model_inputs(options: AnimateOptions, state: dict, config, driving, driving_
 
 
 def _report_fit(role: str, fit, template, seconds: float) -> None:
+    props = fit.prop_record()
     print(f"registered the {role} ({len(fit.vertices):,} vertices) onto Anny {template.topology} "
           f"({template.num_vertices:,} vertices): {fit.rms * 1000:.1f} mm RMS surface distance, "
-          f"{seconds:.1f} s{' (the fit of an earlier run, aniformer.registration.cached_fit)' if fit.fit_cached else ''}",
-          file=sys.stderr)
+          f"{seconds:.1f} s{' (the fit of an earlier run, aniformer.registration.cached_fit)' if fit.fit_cached else ''}"
+          + (f"; {props['parts']} separate part(s) beyond the body ({props['surface_share']:.1%} of its surface) "
+             "carried rigidly as props" if props["parts"] else ""), file=sys.stderr)
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,12 @@ the mesh and keeps the two embeddings that carry motion across:
    skinning, vertex by vertex: the model's target. A posed target's own joint deformation (a bent
    knee's folded skin) is otherwise carried into every driving pose (docs/results.md: the model's
    error on posed validation characters 79.7 -> 71.0 PMD).
+
+*Props*: a separate part of the mesh (not its largest connected surface) that reaches beyond the fitted
+body (farther than ``aniformer.trust.UNCOVERED_DISTANCE`` of its height: a sword, a staff, long hair, a
+hat's brim), all such parts together at most ``PROP_SHARE`` of the surface, rides one template point,
+the one nearest the part, as a rigid whole: vertex by vertex it would be carried by whichever limb is
+nearest (a sword's tip by a leg) and torn. The template is read from the other faces only.
 """
 
 from __future__ import annotations
@@ -28,8 +34,8 @@ import roma
 import torch
 
 from aniformer.geometry import frames_per_chunk
-from aniformer.registration import BodyFit, anny_template, cached_fit
-from aniformer.surface import closest_points
+from aniformer.registration import PROP_SHARE, BodyFit, anny_template, cached_fit
+from aniformer.surface import SurfacePoints, closest_points, surface_parts
 from aniformer.transfer import vertex_rotations
 
 
@@ -51,14 +57,50 @@ class Correspondence:
         self.template_faces = anny_template(topology).faces
         self.fitted, self.fit_cached = ((fitted, False) if fitted is not None
                                         else cached_fit(self.vertices, self.faces, topology, **fit_options))
-        self.template_on_mesh = closest_points(self.fitted.vertices, self.vertices, self.faces)
+        self.parts, self.part_shares = surface_parts(self.vertices, self.faces)  # (N,) and per part; 0 the largest
+        self.props = np.zeros(len(self.vertices), bool)  # (N,) vertices of props, each part carried rigidly
+        self._embed()
+        props = self._props()
+        if props.any():
+            self.props = props
+            self._embed()
+        self.rms = float(np.sqrt(np.square(np.concatenate([self.template_gap, self.mesh_gap[~self.props]])).mean()))
+        self.unposed_template = self.fitted.unposed(self.template).astype(np.float32)
+
+    def _embed(self) -> None:
+        """The template on the mesh's faces other than props', and the mesh on the template: a prop's every
+        vertex on the template point nearest the prop."""
+        body_faces = np.flatnonzero(~self.props[self.faces[:, 0]])
+        on_mesh = closest_points(self.fitted.vertices, self.vertices, self.faces[body_faces])
+        self.template_on_mesh = SurfacePoints(body_faces[on_mesh.face], on_mesh.weights)
         self.template = self.to_template(self.vertices)
         self.mesh_on_template = closest_points(self.vertices, self.template, self.template_faces)
+        gap = np.linalg.norm(self.vertices - self.mesh_on_template.on(self.template, self.template_faces), axis=1)
+        for part in np.unique(self.parts[self.props]):
+            members = np.flatnonzero(self.parts == part)
+            contact = members[gap[members].argmin()]
+            self.mesh_on_template.face[members] = self.mesh_on_template.face[contact]
+            self.mesh_on_template.weights[members] = self.mesh_on_template.weights[contact]
         back = self.mesh_on_template.on(self.template, self.template_faces)
         self.template_gap = np.linalg.norm(self.fitted.vertices - self.template, axis=1)  # (V_a,) template to mesh
-        self.mesh_gap = np.linalg.norm(self.vertices - back, axis=1)  # (N,) mesh to template
-        self.rms = float(np.sqrt(np.square(np.concatenate([self.template_gap, self.mesh_gap])).mean()))
-        self.unposed_template = self.fitted.unposed(self.template).astype(np.float32)
+        self.mesh_gap = np.linalg.norm(self.vertices - back, axis=1)  # (N,) mesh to template (a prop's: to its point)
+
+    def _props(self) -> np.ndarray:
+        """``(N,)``: the vertices of separate parts that reach beyond the fitted body, if all such parts together
+        are at most ``PROP_SHARE`` of the surface (else none: a skirt or a coat is no prop)."""
+        from aniformer.trust import UNCOVERED_DISTANCE
+
+        beyond = np.bincount(self.parts, self.mesh_gap > UNCOVERED_DISTANCE * self.fitted.height,
+                             minlength=len(self.part_shares)) > 0
+        beyond[0] = False  # the body itself
+        if self.part_shares[beyond].sum() > PROP_SHARE:
+            return np.zeros(len(self.parts), bool)
+        return beyond[self.parts]
+
+    def prop_record(self) -> dict:
+        """The props as animation.json records them: how many separate parts, their share of the surface."""
+        parts = np.unique(self.parts[self.props])
+        return {"parts": len(parts), "surface_share": round(float(self.part_shares[parts].sum()), 4)}
 
     def to_template(self, frames: np.ndarray) -> np.ndarray:
         """Frames ``(..., N, 3)`` of the mesh's topology as ``(..., V_a, 3)`` on Anny's."""

@@ -30,7 +30,16 @@ import torch
 import trimesh
 
 from aniformer.io.files import atomic_path
-from aniformer.surface import GeodesicFrame, OrientedCloud, chamfer, extremities, geodesic_frame, nearest_pairs, normals
+from aniformer.surface import (
+    GeodesicFrame,
+    OrientedCloud,
+    chamfer,
+    extremities,
+    geodesic_frame,
+    nearest_pairs,
+    normals,
+    surface_parts,
+)
 from aniformer.transfer import mesh_edges
 
 COARSE_TOPOLOGY = "notoes_collapse3pc"  # every hypothesis is tried here first: Anny's rig is one for all topologies
@@ -53,6 +62,7 @@ PREFIT_LR = 0.05
 COARSE_PRUNE = (20, 24)
 REFINE_PRUNE = (60, 4)
 NEIGHBOURS_EVERY = 2  # Chamfer steps per nearest-neighbour search (the searches were a third of the fit's time)
+PROP_SHARE = 0.15  # of the surface: separate parts up to this together may lie off the body (a sword, long hair)
 POSE_PRIOR = 1e-4  # per rad^2 of bone rotation: keeps unconstrained bones (fingers, face) at rest
 CACHE_ENV = "ANIFORMER_CACHE_DIR"  # where fits are kept (``fit_cache_dir``)
 
@@ -266,17 +276,22 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
     On the coarse template: each pose seed turned onto the mesh's geodesic partners, for each
     assignment of hands and feet (``SIDES``), and the rest pose in each of ``orientations`` (default:
     ``orientation_hypotheses``). The ``KEEP`` of least Chamfer distance go on at ``topology``, and
-    the best of them gets small smooth per-vertex offsets. ``steps``: of the coarse round, of the
-    kept ones (300, not 110: 0.8x the template error on validation bodies, 1.56x the time; docs/results.md),
-    of the offsets."""
+    the best of them gets small smooth per-vertex offsets. The body covers the mesh's largest connected
+    surface; separate parts up to ``PROP_SHARE`` of the surface (eyeballs, a sword) only attract it.
+    ``steps``: of the coarse round, of the kept ones (300, not 110: 0.8x the template error on validation
+    bodies, 1.56x the time; docs/results.md), of the offsets."""
     mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), faces, process=False)
     centre = (mesh.bounds[0] + mesh.bounds[1]) / 2
     samples, sample_faces = trimesh.sample.sample_surface(mesh, MESH_SAMPLES, seed=seed)
     vertex_normals, face_normals = normals(mesh.vertices, mesh.faces)
     outward = np.sign(((mesh.triangles_center - centre) * face_normals * mesh.area_faces[:, None]).sum()) or 1.0
     shown = np.sort(np.random.default_rng(seed).permutation(len(mesh.vertices))[:MESH_VERTICES])
+    parts, shares = surface_parts(mesh.vertices, faces)
+    # the body is fitted to cover its largest surface; separate small parts (eyeballs, a hat, a sword) only attract it
+    covered = parts == 0 if shares[1:].sum() <= PROP_SHARE else np.ones(len(parts), bool)
     cloud = OrientedCloud.of(np.concatenate([samples, mesh.vertices[shown]]) - centre,
-                      outward * np.concatenate([face_normals[sample_faces], vertex_normals[shown]]))  # faces wound inwards too
+                             outward * np.concatenate([face_normals[sample_faces], vertex_normals[shown]]),  # inward-wound too
+                             None if covered.all() else np.concatenate([covered[faces[sample_faces, 0]], covered[shown]]))
     coarse_cloud = cloud.subset(np.random.default_rng(seed).permutation(len(cloud.oriented))[:COARSE_MESH_POINTS])
     coarse, template = anny_template(COARSE_TOPOLOGY, COARSE_TEMPLATE_SAMPLES), anny_template(topology)
     root = template.bone_labels.index("root")

@@ -112,21 +112,37 @@ def _labelled_extremities(graph: scipy.sparse.csr_matrix, vertices: np.ndarray) 
     return [np.flatnonzero(distances[k] < EXTREMITY_RADIUS * scale) for k in (-1, *hands, *feet)], scale
 
 
+def surface_parts(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(each vertex's part ``(V,)``, each part's share of the surface area): the mesh's connected surfaces,
+    vertices at one position joined (`_edge_graph`), largest by area first (part 0)."""
+    vertices = np.asarray(vertices, np.float64)
+    _, labels = scipy.sparse.csgraph.connected_components(_edge_graph(vertices, faces), directed=False)
+    area = trimesh.triangles.area(vertices[faces])
+    shares = np.bincount(labels[faces[:, 0]], area, minlength=labels.max() + 1) / max(area.sum(), 1e-12)
+    order = np.argsort(-shares, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return rank[labels], shares[order]
+
+
 @dataclass(frozen=True)
 class OrientedCloud:
-    """Points on a mesh with their outward normals, and a k-d tree of both (``NORMAL_WEIGHT``)."""
+    """Points on a mesh with their outward normals, and a k-d tree of both (``NORMAL_WEIGHT``); ``covers``
+    marks the points a fitted surface must come near (``None``: all), the Chamfer distance's way back."""
 
     points: torch.Tensor  # (M, 3)
     oriented: np.ndarray  # (M, 6): points and weighted normals
     tree: scipy.spatial.cKDTree
+    covers: np.ndarray | None = None  # (M,) bool
 
     @classmethod
-    def of(cls, points: np.ndarray, normals: np.ndarray) -> OrientedCloud:
+    def of(cls, points: np.ndarray, normals: np.ndarray, covers: np.ndarray | None = None) -> OrientedCloud:
         oriented = np.concatenate([points, NORMAL_WEIGHT * normals], 1)
-        return cls(torch.from_numpy(points).float(), oriented, scipy.spatial.cKDTree(oriented))
+        return cls(torch.from_numpy(points).float(), oriented, scipy.spatial.cKDTree(oriented), covers)
 
     def subset(self, index: np.ndarray) -> OrientedCloud:
-        return OrientedCloud.of(self.points.numpy()[index], self.oriented[index, 3:] / NORMAL_WEIGHT)
+        return OrientedCloud.of(self.points.numpy()[index], self.oriented[index, 3:] / NORMAL_WEIGHT,
+                                None if self.covers is None else self.covers[index])
 
 
 def nearest_pairs(a: torch.Tensor, a_normals: np.ndarray, b: OrientedCloud) -> tuple[torch.Tensor, torch.Tensor]:
@@ -140,13 +156,13 @@ def nearest_pairs(a: torch.Tensor, a_normals: np.ndarray, b: OrientedCloud) -> t
 
 
 def chamfer(a: torch.Tensor, b: OrientedCloud, nearest: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
-    """Symmetric squared Chamfer distance per batch row between ``a (B, N, 3)`` and a cloud -> ``(B,)``,
-    over the ``nearest_pairs``: only the distances are differentiated (a dense distance matrix costs
-    ~1 s per step)."""
+    """Symmetric squared Chamfer distance per batch row between ``a (B, N, 3)`` and a cloud -> ``(B,)``, back
+    from the cloud's ``covers`` points only, over the ``nearest_pairs``: only the distances are differentiated
+    (a dense distance matrix costs ~1 s per step)."""
     nearest_b, nearest_a = nearest
     to_b = (a - b.points[nearest_b]).square().sum(-1).mean(1)
-    to_a = (b.points[None] - torch.gather(a, 1, nearest_a[..., None].expand(-1, -1, 3))).square().sum(-1).mean(1)
-    return to_b + to_a
+    to_a = (b.points[None] - torch.gather(a, 1, nearest_a[..., None].expand(-1, -1, 3))).square().sum(-1)
+    return to_b + (to_a if b.covers is None else to_a[:, torch.from_numpy(b.covers)]).mean(1)
 
 
 def normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

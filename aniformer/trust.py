@@ -9,7 +9,7 @@ wrong correspondence cannot all pass (measured in docs/results.md#the-self-check
   fitted where the mesh has none, or a foot pointing backwards, is far from the surface;
 - ``uncovered``: the share of the mesh's surface farther from the template than
   ``UNCOVERED_DISTANCE`` of the height (a mesh limb no template limb lies on: it would be carried
-  by the wrong part);
+  by the wrong part), props aside (``aniformer.correspondence``: carried rigidly);
 - ``flipped``: the share of the fitted body's vertices whose normal points against the mesh's
   surface there (a template turned inside out, or a limb through the torso);
 - ``part flipped``: the same share per body part, the worst part's (a hand turned over is too small
@@ -102,7 +102,7 @@ def registration_checks(correspondence, role: str = "") -> list[Check]:
     faces, vertices = correspondence.faces, correspondence.vertices
     area = np.linalg.norm(np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
                                    vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1)
-    far = correspondence.mesh_gap[faces].mean(1) > UNCOVERED_DISTANCE * height
+    far = (correspondence.mesh_gap[faces].mean(1) > UNCOVERED_DISTANCE * height) & ~correspondence.props[faces[:, 0]]
     uncovered = float(area[far].sum() / max(area.sum(), 1e-12))
     from aniformer.surface import normals
 

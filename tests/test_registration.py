@@ -395,3 +395,65 @@ def test_pruned_fit_rounds_go_on_exactly_as_the_rows_would_have():
     for fitted, alone in zip(pruned, full):
         torch.testing.assert_close(fitted, alone[rows], rtol=1e-4, atol=1e-6)
     torch.testing.assert_close(pruned_loss, full_loss[rows], rtol=1e-4, atol=1e-9)
+
+
+def test_surface_parts_join_vertices_split_at_seams_and_put_the_largest_first():
+    """Two triangles apart are two parts, the larger first; a triangle's copy whose vertices sit where the first
+    triangle's do (a UV seam, as glTF writes it) is the same part."""
+    from aniformer.surface import surface_parts
+
+    small = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
+    big = 3 * small + [5, 0, 0]
+    vertices = np.concatenate([small, big, small[[0, 1]], [[1, 1, 0]]])
+    faces = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]])  # the third shares an edge's position with the first
+    parts, shares = surface_parts(vertices, faces)
+    np.testing.assert_array_equal(parts, [1, 1, 1, 0, 0, 0, 1, 1, 1])
+    np.testing.assert_allclose(shares, [4.5 / 5.5, 1.0 / 5.5])
+
+
+def test_a_prop_rides_the_hand_that_holds_it_as_a_rigid_whole(stream):
+    """A stick held out from a hand, a separate part beyond the body (a sword): the body is fitted without it,
+    the self-check trusts the fit, and in every driving pose the stick keeps its shape and stays at the hand.
+    A separate part too large to be a prop (half the surface) is not one: the self-check refuses it."""
+    import trimesh
+
+    from aniformer.correspondence import Correspondence
+    from aniformer.synth.stream import _body_model, pose_pairs
+    from aniformer.transfer import deformation_transfer
+    from aniformer.trust import registration_checks
+
+    body = _body_model(MODEL_TOPOLOGY)
+    rest = body.pose(np.full((1, 6), 0.5, np.float32), np.zeros((1, len(body.bone_labels), 3), np.float32))[0]
+    hand = int(rest[:, 0].argmin())
+    stick = trimesh.creation.box(extents=[0.6, 0.03, 0.03])
+    stick.apply_translation(rest[hand] + [-0.3, 0.0, 0.0])
+    vertices = np.concatenate([rest, stick.vertices]).astype(np.float32)
+    faces = np.concatenate([body.faces, stick.faces + len(rest)])
+    fit = Correspondence(vertices, faces, MODEL_TOPOLOGY)
+    assert fit.prop_record()["parts"] == 1 and fit.props[len(rest):].all() and not fit.props[: len(rest)].any()
+    assert fit.rms < 0.01
+    assert all(check.ok for check in registration_checks(fit)), [check.describe() for check in registration_checks(fit)]
+
+    driver = center_bbox(pose_pairs(body, stream.draws("characters", 0, [3]))[0][0])
+    moved = deformation_transfer(torch.from_numpy(driver[None]), torch.from_numpy(fit.unposed_template[None]),
+                                 torch.from_numpy(fit.template_faces))[0].numpy()
+    frames = fit.from_template(moved)
+    held = frames[:, len(rest):]
+
+    def apart(points):
+        return np.linalg.norm(points[..., :, None, :] - points[..., None, :, :], axis=-1)
+
+    np.testing.assert_allclose(apart(held), np.broadcast_to(apart(stick.vertices), apart(held).shape), atol=1e-3)
+    grip = np.linalg.norm(held - frames[:, hand : hand + 1], axis=-1).min(1)  # the stick's nearest corner to the hand
+    assert np.abs(grip - grip[0]).max() < 0.03, grip
+    ends = np.unravel_index(apart(stick.vertices).argmax(), (len(stick.vertices),) * 2)  # a long diagonal
+    along, at_rest = held[:, ends[1]] - held[:, ends[0]], stick.vertices[ends[1]] - stick.vertices[ends[0]]
+    turned = along @ at_rest / (np.linalg.norm(along, axis=1) * np.linalg.norm(at_rest))
+    assert turned.max() < np.cos(0.3)  # the pose turned the hand, and the stick with it
+
+    crate = trimesh.creation.box(extents=[0.5, 0.5, 0.5])
+    crate.apply_translation(rest[hand] + [-0.4, 0.0, 0.0])
+    beside = Correspondence(np.concatenate([rest, crate.vertices]).astype(np.float32),
+                            np.concatenate([body.faces, crate.faces + len(rest)]), MODEL_TOPOLOGY, fitted=fit.fitted)
+    assert beside.prop_record()["parts"] == 0
+    assert not next(check for check in registration_checks(beside) if check.name == "uncovered").ok
