@@ -9,7 +9,7 @@ from aniformer.synth.stream import StreamPairs
 from aniformer.synth.variants import DENSE_VERTICES, DRIVER_FRAMES, posed_target_poses, variant_pairs
 
 TOPOLOGY = "notoes_collapse3pc"
-NEW_VARIANTS = ["posed", "rotated", "lying", "glb", "seams", "parts", "dense", "foreign_driver"]
+NEW_VARIANTS = ["posed", "rotated", "lying", "glb", "seams", "parts", "props", "dense", "foreign_driver"]
 
 
 class TargetPosesFirst(StreamPairs):
@@ -40,11 +40,12 @@ def test_new_variants_are_foreign_meshes_whose_ground_truth_is_the_target_in_its
     on the target's vertices; where the driving window holds the target's own pose the ground truth
     is the target (through a GLB file, vertices in order), up to a rigid turn for ``rotated`` and
     ``lying``, which lies (its long axis horizontal); ``seams`` is ``posed``'s mesh in 8 islands that touch
-    only by position, copies moving as one; ``parts`` adds three separate parts; ``dense``
+    only by position, copies moving as one; ``parts`` adds three separate parts, ``props`` a stick out of the hand
+    that keeps its shape in every pose; ``dense``
     passes 50,000 vertices; ``foreign_driver`` drives the model's topology with a longer clip of its own."""
     stream = TargetPosesFirst(TOPOLOGY, window=3, seed=0)
     (pair,) = variant_pairs(stream, "characters", 0, [0], NEW_VARIANTS)
-    frame_of_target = {"posed": 1, "rotated": 1, "lying": 0, "glb": 0, "seams": 1, "parts": 0, "dense": 0,
+    frame_of_target = {"posed": 1, "rotated": 1, "lying": 0, "glb": 0, "seams": 1, "parts": 0, "props": 0, "dense": 0,
                        "foreign_driver": 0}
     for variant in NEW_VARIANTS:
         case = pair[variant]
@@ -64,6 +65,11 @@ def test_new_variants_are_foreign_meshes_whose_ground_truth_is_the_target_in_its
     on_parts = parts["faces"] >= len(posed["target"])
     assert (on_parts.all(1) | ~on_parts.any(1)).all()  # no face joins a part to the body
     assert len(trimesh.Trimesh(parts["target"], parts["faces"][on_parts.all(1)], process=False).split(only_watertight=False)) == 3
+    props = pair["props"]
+    stick = props["target"][len(posed["target"]):]
+    assert len(stick) == 8 and np.ptp(stick, axis=0).max() > 0.7
+    for frames in (props["ground_truth"], props["copy_driver"]):
+        assert max(_rigid_residual(frame[len(posed["target"]):], stick) for frame in frames) < 1e-4
     seams = pair["seams"]
     pieces = trimesh.Trimesh(seams["target"], seams["faces"], process=False).split(only_watertight=False)
     assert len(pieces) >= 8  # an island's faces need not all touch

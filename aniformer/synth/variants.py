@@ -20,7 +20,9 @@ any pose):
 - ``glb``: written to a GLB file in glTF's y-up axes with trimesh, read back with
   ``aniformer.io.mesh.load_mesh`` and turned z-up again;
 - ``parts``: with an artist's separate parts: an eyeball in each eye socket (at Anny's ``eye.L``
-  and ``eye.R`` bone heads) and a teeth box in the mouth cavity.
+  and ``eye.R`` bone heads) and a teeth box in the mouth cavity;
+- ``props``: holding a sword, a ``PROP_LENGTH`` stick pointing forward out of the right palm, a separate
+  part carried rigidly by the hand (``AttachedPoints.rigid``).
 
 and two more:
 
@@ -67,13 +69,14 @@ VARIANTS: dict[str, str] = {
     "glb": "Anny's full body decimated, through a y-up GLB file",
     "seams": "posed, its vertices split at UV seams into 8 islands (of the rest pose), through a y-up GLB file",
     "parts": "Anny's full body decimated, with eyeballs and teeth as separate parts",
+    "props": "Anny's full body decimated, holding a sword (a separate part, rigid in the right hand)",
     "dense": "Anny's full body subdivided past 50,000 vertices, shuffled",
     "foreign_driver": "the training topology driven by a 24-frame clip of a decimated, shuffled body",
 }
 OTHER_TOPOLOGY = {"notoes_collapse3pc": "notoes_collapse10pc"}  # else notoes_collapse3pc
 FULL_TOPOLOGY = "notoes"
 REMESH_FACES = 3000
-CARRIED = ("posed", "rotated", "lying", "glb", "seams", "parts")
+CARRIED = ("posed", "rotated", "lying", "glb", "seams", "parts", "props")
 SEAM_HEIGHTS = (0.3, 0.5, 0.8)  # of the body's height: islands below, between and above, each split left and right
 DENSE_VERTICES = 50_000
 DENSE_REFINED_FACES = 1000  # the largest faces subdivided a second time: 49,082 vertices once, past 50,000 then
@@ -86,6 +89,7 @@ EYE_RADIUS = 0.012
 EYE_SUBDIVISIONS = 1  # 42 vertices an eyeball: the parts ~6 % of the vertices, as on an artist's mesh (162: 18 %)
 TEETH_OFFSET = (0.0, 0.02, -0.065)  # from the eyes' midpoint (Anny faces -y, z up)
 TEETH_EXTENTS = (0.03, 0.03, 0.012)
+PROP_LENGTH, PROP_WIDTH = 0.8, 0.03  # metres: a sword's blade, out of the palm along Anny's facing (-y)
 
 
 def remesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -121,6 +125,17 @@ class AttachedPoints:
         axes = _face_axes(vertices, faces[surface.face])
         return cls(surface, np.einsum("nij,nj->ni", axes, np.asarray(points, np.float64) - surface.on(vertices, faces)))
 
+    @classmethod
+    def rigid(cls, points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> AttachedPoints:
+        """``points (N, 3)`` attached as one rigid whole to the mesh's point nearest them (a prop in a hand)."""
+        vertices = np.asarray(vertices, np.float64)
+        surface = closest_points(points, vertices, faces)
+        nearest = int(np.linalg.norm(surface.on(vertices, faces) - points, axis=1).argmin())
+        grip = SurfacePoints(np.full(len(points), surface.face[nearest]), np.repeat(surface.weights[nearest : nearest + 1],
+                                                                                     len(points), 0))
+        axes = _face_axes(vertices, faces[grip.face])
+        return cls(grip, np.einsum("nij,nj->ni", axes, np.asarray(points, np.float64) - grip.on(vertices, faces)))
+
     def on(self, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         """The points where the mesh ``vertices (..., V, 3)`` carries them -> ``(..., N, 3)`` float32."""
         vertices = np.asarray(vertices, np.float64)
@@ -153,6 +168,15 @@ def extra_parts(heads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     starts = np.cumsum([0] + [len(mesh.vertices) for mesh, _ in parts])
     return (np.concatenate([mesh.vertices + centre for mesh, centre in parts]),
             np.concatenate([mesh.faces + start for (mesh, _), start in zip(parts, starts[:-1], strict=True)]))
+
+
+def held_prop(heads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A sword in the right hand of a body at rest with bone heads ``(bones, 3)``: a ``PROP_LENGTH`` stick
+    from the palm (between the wrist and the middle finger's base) forward -> vertices ``(8, 3)``, faces."""
+    labels = _body_model(FULL_TOPOLOGY).bone_labels
+    palm = (heads[labels.index("wrist.R")] + heads[labels.index("finger3-1.R")]) / 2
+    blade = trimesh.creation.box(extents=(PROP_WIDTH, PROP_LENGTH, PROP_WIDTH))
+    return blade.vertices + palm + (0.0, -PROP_LENGTH / 2, 0.0), np.asarray(blade.faces)
 
 
 def posed_target_poses(stream: StreamPairs, split: str, epoch: int, indices: Sequence[int]) -> np.ndarray:
@@ -317,9 +341,14 @@ def variant_pairs(stream: StreamPairs, split: str, epoch: int, indices: Sequence
                     points, faces = np.concatenate([points, part_points]), np.concatenate([faces, part_faces + len(points)])
                 elif variant == "seams":
                     points, faces, _ = split_at_seams(points, faces, seam_islands(points, faces))
-                carry = AttachedPoints.attach(points, rest[b], full.faces)
+                carry = [AttachedPoints.attach(points, rest[b], full.faces)]
+                if variant == "props":
+                    prop_points, prop_faces = held_prop(heads[b])
+                    carry.append(AttachedPoints.rigid(prop_points, rest[b], full.faces))
+                    faces = np.concatenate([faces, prop_faces + len(points)])
                 full_target = posed[b] if variant in ("posed", "rotated", "seams") else target
-                target, truth, drive = (carry.on(x, full.faces) for x in (full_target, truth, drive))
+                target, truth, drive = (np.concatenate([c.on(x, full.faces) for c in carry], -2)
+                                        for x in (full_target, truth, drive))
                 if variant in ("rotated", "lying"):
                     rng = _generator(stream.seed, f"{variant}-target", *keys)
                     turn = random_rotation(rng) if variant == "rotated" else lying_rotation(rng)
