@@ -75,15 +75,18 @@ class Correspondence:
         self.template_on_mesh = SurfacePoints(body_faces[on_mesh.face], on_mesh.weights)
         self.template = self.to_template(self.vertices)
         self.mesh_on_template = closest_points(self.vertices, self.template, self.template_faces)
-        gap = np.linalg.norm(self.vertices - self.mesh_on_template.on(self.template, self.template_faces), axis=1)
+        self.template_gap = np.linalg.norm(self.fitted.vertices - self.template, axis=1)  # (V_a,) template to mesh
+        self.mesh_gap = self._mesh_gap()  # (N,) mesh to template (a prop's: to its point)
         for part in np.unique(self.parts[self.props]):
             members = np.flatnonzero(self.parts == part)
-            contact = members[gap[members].argmin()]
+            contact = members[self.mesh_gap[members].argmin()]
             self.mesh_on_template.face[members] = self.mesh_on_template.face[contact]
             self.mesh_on_template.weights[members] = self.mesh_on_template.weights[contact]
-        back = self.mesh_on_template.on(self.template, self.template_faces)
-        self.template_gap = np.linalg.norm(self.fitted.vertices - self.template, axis=1)  # (V_a,) template to mesh
-        self.mesh_gap = np.linalg.norm(self.vertices - back, axis=1)  # (N,) mesh to template (a prop's: to its point)
+        if self.props.any():
+            self.mesh_gap = self._mesh_gap()
+
+    def _mesh_gap(self) -> np.ndarray:
+        return np.linalg.norm(self.vertices - self.mesh_on_template.on(self.template, self.template_faces), axis=1)
 
     def _props(self) -> np.ndarray:
         """``(N,)``: the vertices of separate parts that reach beyond the fitted body, if all such parts together

@@ -121,9 +121,7 @@ class AttachedPoints:
     def attach(cls, points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> AttachedPoints:
         """``points (N, 3)`` attached to the mesh (``vertices``, ``faces``)."""
         vertices = np.asarray(vertices, np.float64)
-        surface = closest_points(points, vertices, faces)
-        axes = _face_axes(vertices, faces[surface.face])
-        return cls(surface, np.einsum("nij,nj->ni", axes, np.asarray(points, np.float64) - surface.on(vertices, faces)))
+        return cls._at(closest_points(points, vertices, faces), points, vertices, faces)
 
     @classmethod
     def rigid(cls, points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> AttachedPoints:
@@ -133,8 +131,13 @@ class AttachedPoints:
         nearest = int(np.linalg.norm(surface.on(vertices, faces) - points, axis=1).argmin())
         grip = SurfacePoints(np.full(len(points), surface.face[nearest]), np.repeat(surface.weights[nearest : nearest + 1],
                                                                                      len(points), 0))
-        axes = _face_axes(vertices, faces[grip.face])
-        return cls(grip, np.einsum("nij,nj->ni", axes, np.asarray(points, np.float64) - grip.on(vertices, faces)))
+        return cls._at(grip, points, vertices, faces)
+
+    @classmethod
+    def _at(cls, surface: SurfacePoints, points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> AttachedPoints:
+        """``points`` attached at the surface points ``surface``: their offsets in those faces' axes."""
+        axes = _face_axes(vertices, faces[surface.face])
+        return cls(surface, np.einsum("nij,nj->ni", axes, np.asarray(points, np.float64) - surface.on(vertices, faces)))
 
     def on(self, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         """The points where the mesh ``vertices (..., V, 3)`` carries them -> ``(..., N, 3)`` float32."""
