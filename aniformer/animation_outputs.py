@@ -25,7 +25,7 @@ def rig_inputs(options: AnimateOptions, state: dict, target, target_faces, regis
     """(the target's vertices on an Anny topology, that topology, where each target vertex lies on it or None)
     for ``aniformer.rig.build_rig``: the registration's, else the target itself when it is an Anny mesh, else
     a registration made here (a model of absolute output registers nothing)."""
-    from aniformer.correspondence import Correspondence
+    from aniformer.correspondence import register_mesh
 
     if "target" in registrations:
         fit = registrations["target"]
@@ -33,8 +33,7 @@ def rig_inputs(options: AnimateOptions, state: dict, target, target_faces, regis
     topology = anny_topology(target, target_faces)
     if topology is not None:
         return target, topology, None
-    fit = Correspondence(target, target_faces,
-                         options.template or (state["config"].get("data") or {}).get("topology"))
+    fit = register_mesh(target, target_faces, options.template or (state["config"].get("data") or {}).get("topology"))
     return fit.template, fit.topology, fit.mesh_on_template
 
 
@@ -161,9 +160,7 @@ def write_animation(out: Path, options: AnimateOptions, state: dict, name: str, 
         "driving_vertices": int(driving.shape[1]), "target_vertices": int(target.shape[0]),
         "window": inference.window, "combine": inference.combine, "windows": inference.windows,
         "input_center": inference.input_center,
-        "registered": {role: {"rms_m": round(fit.rms, 5), "template_vertices": len(fit.template),
-                              "fit_cached": fit.fit_cached, "props": fit.prop_record()}
-                       for role, fit in registrations.items()},
+        "registered": {role: fit.record() for role, fit in registrations.items()},
         "up": {role: {"axis": axis, "why": why} for role, (axis, why) in axes.items()},
         "units": {role: {"unit": unit, "why": why} for role, (unit, why) in units.items()},
         "trust": inference.trust.to_dict(),

@@ -152,7 +152,7 @@ def model_inputs(options: AnimateOptions, state: dict, config, driving, driving_
     registrations, driver_trust = {}, None
     if getattr(config, "output", "absolute") == "absolute":  # no vertex correspondence needed
         return target_faces, driving, target, registrations, driver_trust
-    from aniformer.correspondence import Correspondence, register_clip
+    from aniformer.correspondence import register_clip, register_mesh
     from aniformer.synth.bodies import TOPOLOGIES, BodyModel
 
     registered = registered or {}
@@ -172,7 +172,7 @@ def model_inputs(options: AnimateOptions, state: dict, config, driving, driving_
         registrations["target"] = registered["target"]
     elif not np.array_equal(target_faces, faces):
         with timed(seconds, "register target"):
-            registrations["target"] = Correspondence(target, target_faces, topology)
+            registrations["target"] = register_mesh(target, target_faces, topology)
         _report_fit("target", registrations["target"], template, seconds["register target"])
     model_driving = registrations["driver"].to_template(driving) if "driver" in registrations else driving
     model_target = registrations["target"].unposed_template if "target" in registrations else target
@@ -185,7 +185,9 @@ def _report_fit(role: str, fit, template, seconds: float) -> None:
           f"({template.num_vertices:,} vertices): {fit.rms * 1000:.1f} mm RMS surface distance, "
           f"{seconds:.1f} s{' (the fit of an earlier run, aniformer.registration.cached_fit)' if fit.fit_cached else ''}"
           + (f"; {props['parts']} separate part(s) beyond the body ({props['surface_share']:.1%} of its surface) "
-             "carried rigidly as props" if props["parts"] else ""), file=sys.stderr)
+             "carried rigidly as props" if props["parts"] else "")
+          + (f"; kept the fit of sampling seed {fit.fit_seed} (aniformer.correspondence.register_mesh: the self-check "
+             "refused an earlier one)" if fit.fit_seed else ""), file=sys.stderr)
 
 
 @dataclass(frozen=True)

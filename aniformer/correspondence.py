@@ -38,6 +38,8 @@ from aniformer.registration import PROP_SHARE, BodyFit, anny_template, cached_fi
 from aniformer.surface import SurfacePoints, closest_points, surface_parts
 from aniformer.transfer import vertex_rotations
 
+FIT_TRIES = 3  # fits of a character, each with its own sampling seed, until the self-check trusts one
+
 
 class Correspondence:
     """A mesh registered to an Anny topology: read its frames on the template, carry poses back.
@@ -51,6 +53,7 @@ class Correspondence:
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, topology: str, fitted: BodyFit | None = None,
                  **fit_options):
+        self.fit_seed = fit_options.get("seed", 0)
         self.vertices = np.asarray(vertices, np.float32)
         self.faces = np.asarray(faces, np.int64)
         self.topology = topology
@@ -99,6 +102,12 @@ class Correspondence:
         if self.part_shares[beyond].sum() > PROP_SHARE:
             return np.zeros(len(self.parts), bool)
         return beyond[self.parts]
+
+    def record(self) -> dict:
+        """The registration as animation.json's ``registered`` records it: surface distance, template size,
+        whether the fit was kept from an earlier run, its sampling seed (``register_mesh``'s try) and props."""
+        return {"rms_m": round(self.rms, 5), "template_vertices": len(self.template), "fit_cached": self.fit_cached,
+                "fit_seed": self.fit_seed, "props": self.prop_record()}
 
     def prop_record(self) -> dict:
         """The props as animation.json records them: how many separate parts, their share of the surface."""
@@ -155,6 +164,29 @@ def weighted_rotation_mean(quaternions: torch.Tensor, weights: torch.Tensor, tol
     return mean.movedim(0, -1)
 
 
+def _badness(checks) -> float:
+    """The worst of ``checks`` as a share of its limit: at most 1 where the self-check trusts them all."""
+    return max(c.value / c.limit for c in checks)
+
+
+def register_mesh(vertices: np.ndarray, faces: np.ndarray, topology: str, tries: int = FIT_TRIES,
+                  **fit_options) -> Correspondence:
+    """A character's mesh registered onto ``topology`` (``fit_options``: ``fit_template``'s): fitted with
+    sampling seed 0, 1, ... while the self-check's registration checks (``aniformer.trust.registration_checks``)
+    refuse the fit, at most ``tries`` times; the fit they trust most is kept (its ``fit_seed`` says which try)."""
+    from aniformer.trust import registration_checks
+
+    best = None
+    for seed in range(tries):
+        fit = Correspondence(vertices, faces, topology, **fit_options, **({"seed": seed} if seed else {}))  # 0: the plain key
+        badness = _badness(registration_checks(fit))
+        if best is None or badness < best[0]:
+            best = (badness, fit)
+        if badness <= 1.0:
+            break
+    return best[1]
+
+
 def register_clip(frames: np.ndarray, faces: np.ndarray, topology: str, candidates: int = 3):
     """A driving clip of a foreign topology registered on the whole clip, not its first frame alone:
     (the ``Correspondence``, its ``aniformer.trust.Trust``).
@@ -170,7 +202,7 @@ def register_clip(frames: np.ndarray, faces: np.ndarray, topology: str, candidat
         fit = Correspondence(frames[k], faces, topology)
         trust = Trust((*registration_checks(fit, "driver"),
                        stretch_check(fit.to_template(shown), fit.template, fit.template_faces, "driver on the template")))
-        badness = max(c.value / c.limit for c in trust.checks)
+        badness = _badness(trust.checks)
         if best is None or badness < best[0]:
             best = (badness, fit, trust)
         if trust.ok:

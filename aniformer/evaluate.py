@@ -258,7 +258,7 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
     per pair, whether the self-check refuses the model's result} (``trust.animation_trust``). ``skinned``: the
     skinned transfer too (``aniformer.skinned_transfer``), on the same registered templates as the other rows."""
     from aniformer.animate import animate_sequence
-    from aniformer.correspondence import Correspondence, register_clip
+    from aniformer.correspondence import register_clip, register_mesh
     from aniformer.synth.stream import _body_model
     from aniformer.synth.variants import variant_pairs
     from aniformer.transfer import deformation_transfer
@@ -292,7 +292,7 @@ def target_pmds(model: torch.nn.Module, stream, split: str, variants: Sequence[s
             for variant in variants:
                 case = pair[variant]
                 same = np.array_equal(case["faces"], faces.numpy())
-                correspondence = None if same else Correspondence(case["target"], case["faces"], topology)
+                correspondence = None if same else register_mesh(case["target"], case["faces"], topology)
                 target = case["target"] if same else correspondence.unposed_template
                 driver_trust = None
                 if "driving" in case:

@@ -44,14 +44,17 @@ def main() -> None:
     p.add_argument("--turned", action="store_true")
     p.add_argument("--steps", type=lambda s: tuple(int(n) for n in s.split(",")), default=None, metavar="C,R,O",
                    help="the fit's steps: coarse, refinement, offsets (default: fit_template's)")
+    p.add_argument("--seed", type=int, default=0, help="the fit's sampling seed (fit_template's ``seed``)")
+    p.add_argument("--only", type=lambda s: [int(n) for n in s.split(",")], default=None, metavar="I,J",
+                   help="of the pairs, only these indices")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args()
     stream = StreamPairs(TOPOLOGY, window=3, seed=0)
     rows = []
-    for index in range(args.first, args.first + args.pairs):
+    for index in args.only or range(args.first, args.first + args.pairs):
         target, faces, truth = posed_case(stream, index, args.turned)
         start = time.perf_counter()
-        fit = Correspondence(target, faces, TOPOLOGY, **({"steps": args.steps} if args.steps else {}))
+        fit = Correspondence(target, faces, TOPOLOGY, seed=args.seed, **({"steps": args.steps} if args.steps else {}))
         seconds = time.perf_counter() - start
         error = 100 * float(np.linalg.norm(fit.fitted.vertices - truth, axis=1).mean())
         part = np.linalg.norm(fit.fitted.vertices - truth, axis=1)
@@ -62,7 +65,7 @@ def main() -> None:
     errors = np.array([r["error_cm"] for r in rows])
     summary = {"mean_cm": round(float(errors.mean()), 2), "median_cm": round(float(np.median(errors)), 2),
                "over_5cm": int((errors > 5).sum()), "pairs": len(rows), "turned": args.turned,
-               "steps": args.steps}
+               "steps": args.steps, "seed": args.seed}
     print(json.dumps(summary))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"summary": summary, "rows": rows}, indent=1))

@@ -112,10 +112,10 @@ def load_clip(path: str, animation: str | None, up: str, unit: str, max_vertices
 @ray.remote(num_returns=2, max_retries=MAX_RETRIES)
 def register_target(mesh: Mesh, topology: str):
     """(the target's `Correspondence` on ``topology``, {"rms_m", "seconds"})."""
-    from aniformer.correspondence import Correspondence
+    from aniformer.correspondence import register_mesh
 
     began = time.perf_counter()
-    fit = Correspondence(mesh.vertices, mesh.faces, topology)
+    fit = register_mesh(mesh.vertices, mesh.faces, topology)
     return fit, {"rms_m": fit.rms, "seconds": time.perf_counter() - began}
 
 

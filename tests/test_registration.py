@@ -125,7 +125,8 @@ def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main,
     # the pose came from the driver: the result is far from the unmoved character in a squat
     squat = load_mesh(anim / "frames" / "frame_0003.obj")[0]
     assert np.abs(center_bbox(squat) - center_bbox(from_z_up(vertices, "y"))).max() > 0.05
-    assert not summary["registered"]["target"]["fit_cached"]
+    assert not summary["registered"]["target"]["fit_cached"] and summary["registered"]["target"]["fit_seed"] == 0
+    assert len(list((tmp_path / "fits" / "registrations").iterdir())) == 1  # trusted at once: fitted once
     run(job_main("animate"), ["--target", str(tmp_path / "character.glb"), "--driving", str(samples / "driving"),
                               "--out", str(tmp_path / "again"), "--no-progress", "--preview-frames", "0"])
     assert "the fit of an earlier run" in capsys.readouterr().err
@@ -176,6 +177,33 @@ def test_a_kept_fit_is_loaded_only_for_the_same_mesh_and_options(tmp_path, monke
     monkeypatch.setenv(registration.CACHE_ENV, str(tmp_path / "blocked"))
     fit, loaded = registration.cached_fit(vertices, body.faces, MODEL_TOPOLOGY, **quick)
     assert not loaded and np.array_equal(fit.vertices, first.vertices) and len(fitted) == 5
+
+
+def test_a_refused_fit_is_made_again_with_other_seeds_and_the_most_trusted_kept(tmp_path, monkeypatch):
+    """``register_mesh`` fits again with the next sampling seed while the self-check refuses the fit: a box is
+    refused every time, so it is fitted ``FIT_TRIES`` times (each fit kept apart) and the least refused fit is
+    the one returned; with one try it is fitted once."""
+    import trimesh
+
+    from aniformer import registration
+    from aniformer.correspondence import FIT_TRIES, Correspondence, _badness, register_mesh
+    from aniformer.trust import registration_checks
+
+    monkeypatch.setenv(registration.CACHE_ENV, str(tmp_path / "fits"))
+    box = trimesh.creation.box((0.4, 0.3, 1.7)).subdivide().subdivide()
+    quick = {"steps": (2, 2, 2)}
+    fit = register_mesh(box.vertices, box.faces, MODEL_TOPOLOGY, **quick)
+    assert len(list((tmp_path / "fits" / "registrations").iterdir())) == FIT_TRIES == 3
+    tries = [Correspondence(box.vertices, box.faces, MODEL_TOPOLOGY, **quick, **({"seed": k} if k else {}))
+             for k in range(FIT_TRIES)]
+    assert all(t.fit_cached for t in tries)  # the same fits, loaded
+    badness = [_badness(registration_checks(t)) for t in tries]
+    assert min(badness) > 1.0 and len(set(badness)) == FIT_TRIES  # every try refused, each fit its own
+    assert fit.fit_seed == int(np.argmin(badness)) and _badness(registration_checks(fit)) == min(badness)
+    assert fit.record()["fit_seed"] == fit.fit_seed
+    monkeypatch.setenv(registration.CACHE_ENV, str(tmp_path / "once"))
+    assert register_mesh(box.vertices, box.faces, MODEL_TOPOLOGY, tries=1, **quick).fit_seed == 0
+    assert len(list((tmp_path / "once" / "registrations").iterdir())) == 1
 
 
 def test_animate_refuses_a_mesh_that_is_not_a_body_unless_forced(tmp_path, job_main, capsys):
