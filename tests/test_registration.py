@@ -197,8 +197,9 @@ def test_a_refused_fit_is_made_again_with_other_seeds_and_the_most_trusted_kept(
     tries = [Correspondence(box.vertices, box.faces, MODEL_TOPOLOGY, **quick, **({"seed": k} if k else {}))
              for k in range(FIT_TRIES)]
     assert all(t.fit_cached for t in tries)  # the same fits, loaded
+    assert len({t.fitted.vertices.tobytes() for t in tries}) == FIT_TRIES  # each seed a fit of its own
     badness = [_badness(registration_checks(t)) for t in tries]
-    assert min(badness) > 1.0 and len(set(badness)) == FIT_TRIES  # every try refused, each fit its own
+    assert min(badness) > 1.0  # every try refused: the first of the least refused is kept
     assert fit.fit_seed == int(np.argmin(badness)) and _badness(registration_checks(fit)) == min(badness)
     assert fit.record()["fit_seed"] == fit.fit_seed
     monkeypatch.setenv(registration.CACHE_ENV, str(tmp_path / "once"))
