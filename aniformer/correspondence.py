@@ -178,7 +178,7 @@ def register_mesh(vertices: np.ndarray, faces: np.ndarray, topology: str, tries:
 
     best = None
     for seed in range(tries):
-        fit = Correspondence(vertices, faces, topology, **fit_options, **({"seed": seed} if seed else {}))  # 0: the plain key
+        fit = Correspondence(vertices, faces, topology, **fit_options, seed=seed)
         badness = _badness(registration_checks(fit))
         if best is None or badness < best[0]:
             best = (badness, fit)

@@ -17,6 +17,7 @@ import contextlib
 import functools
 import hashlib
 import importlib.metadata
+import inspect
 import itertools
 import os
 import zipfile
@@ -268,6 +269,7 @@ class BodyFit:
         return (self.to_rest[..., :3] @ points[..., None])[..., 0] + self.to_rest[..., 3]
 
 
+@one_thread()  # all of it: the fit's basin depends on the last bits of its start (a box: other fits on 2 threads than on 1, 3, 4)
 def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
                  steps: tuple[int, int, int] = (50, 300, 100), orientations: torch.Tensor | None = None,
                  seed: int = 0) -> BodyFit:
@@ -308,7 +310,7 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
     side = torch.cat([torch.arange(len(SIDES)).repeat(len(seeds)), torch.zeros(len(orientations), dtype=torch.long)])
     weights = torch.cat([torch.ones(len(seeds) * len(SIDES)), torch.zeros(len(orientations))])
     start = [torch.zeros(len(rotvecs), 6), rotvecs, torch.zeros(len(rotvecs), 1, 3)]  # logit 0: Anny's average
-    with torch.enable_grad(), one_thread():
+    with torch.enable_grad():
         # posed bodies: the skeleton bent onto the partners first (cheap: no nearest-neighbour search), so the
         # Chamfer round starts in the right basin (posed validation bodies: 7.5 -> 2.1 cm mean error)
         posed_rows = len(seeds) * len(SIDES)  # the orientation rows have no partners to be pulled to
@@ -349,6 +351,10 @@ def fit_template(vertices: np.ndarray, faces: np.ndarray, topology: str, *,
                    to_rest.numpy())
 
 
+_fit_defaults = {name: p.default for name, p in inspect.signature(fit_template).parameters.items()
+                 if p.default is not inspect.Parameter.empty}
+
+
 def fit_cache_dir() -> Path:
     """Where ``cached_fit`` keeps fits: ``$ANIFORMER_CACHE_DIR``, else ``$XDG_CACHE_HOME/aniformer``, else
     ``~/.cache/aniformer`` (beside Anny's own build cache, ``~/.cache/anny``)."""
@@ -370,6 +376,8 @@ def _fit_code_version() -> bytes:
 
 
 def _fit_key(vertices: np.ndarray, faces: np.ndarray, topology: str, options: dict) -> str:
+    options = {name: value for name, value in options.items()  # an option given at its default fits the same
+               if name not in _fit_defaults or repr(np.asarray(value).tolist()) != repr(np.asarray(_fit_defaults[name]).tolist())}
     digest = hashlib.sha256(_fit_code_version())
     settings = {name: value for name, value in globals().items() if name.isupper()}  # as set now: a changed one refits
     digest.update(repr(sorted(settings.items(), key=lambda item: item[0])).encode())

@@ -167,6 +167,7 @@ def test_a_kept_fit_is_loaded_only_for_the_same_mesh_and_options(tmp_path, monke
     assert not registration.cached_fit(moved, body.faces, MODEL_TOPOLOGY, **quick)[1]
     assert not registration.cached_fit(vertices, body.faces, MODEL_TOPOLOGY, steps=(2, 2, 3))[1]
     assert len(fitted) == 3
+    assert registration.cached_fit(vertices, body.faces, MODEL_TOPOLOGY, steps=[2, 2, 2], seed=0)[1]  # the defaults
     kept_files = sorted((tmp_path / "fits" / "registrations").iterdir())
     assert len(kept_files) == 3 and all(f.suffix == ".npz" for f in kept_files)
     for f in kept_files:
@@ -177,6 +178,27 @@ def test_a_kept_fit_is_loaded_only_for_the_same_mesh_and_options(tmp_path, monke
     monkeypatch.setenv(registration.CACHE_ENV, str(tmp_path / "blocked"))
     fit, loaded = registration.cached_fit(vertices, body.faces, MODEL_TOPOLOGY, **quick)
     assert not loaded and np.array_equal(fit.vertices, first.vertices) and len(fitted) == 5
+
+
+def test_a_fit_is_the_same_bytes_whatever_torch_s_thread_count():
+    """The fit's basin depends on the last bits of its start: it runs on one thread, whatever the caller's
+    (a box's fits differed at 2 threads from those at 1, 3 or 4 before)."""
+    import trimesh
+
+    from aniformer.registration import fit_template
+
+    box = trimesh.creation.box((0.4, 0.3, 1.7)).subdivide().subdivide()
+    threads = torch.get_num_threads()
+    fits = []
+    try:
+        for count in (1, 2, 3):
+            torch.set_num_threads(count)
+            fit = fit_template(box.vertices, box.faces, MODEL_TOPOLOGY, steps=(2, 2, 2))
+            fits.append(fit.vertices.tobytes() + fit.to_rest.tobytes())
+            assert torch.get_num_threads() == count  # the caller's count given back
+    finally:
+        torch.set_num_threads(threads)
+    assert fits[0] == fits[1] == fits[2]
 
 
 def test_a_refused_fit_is_made_again_with_other_seeds_and_the_most_trusted_kept(tmp_path, monkeypatch):
@@ -194,8 +216,7 @@ def test_a_refused_fit_is_made_again_with_other_seeds_and_the_most_trusted_kept(
     quick = {"steps": (2, 2, 2)}
     fit = register_mesh(box.vertices, box.faces, MODEL_TOPOLOGY, **quick)
     assert len(list((tmp_path / "fits" / "registrations").iterdir())) == FIT_TRIES == 3
-    tries = [Correspondence(box.vertices, box.faces, MODEL_TOPOLOGY, **quick, **({"seed": k} if k else {}))
-             for k in range(FIT_TRIES)]
+    tries = [Correspondence(box.vertices, box.faces, MODEL_TOPOLOGY, **quick, seed=k) for k in range(FIT_TRIES)]
     assert all(t.fit_cached for t in tries)  # the same fits, loaded
     assert len({t.fitted.vertices.tobytes() for t in tries}) == FIT_TRIES  # each seed a fit of its own
     badness = [_badness(registration_checks(t)) for t in tries]
