@@ -444,6 +444,30 @@ def test_preview_of_a_mesh_split_at_seams_stays_closed():
     assert len(drawn) <= 500 and (uses == 2).all()
 
 
+def test_preview_rasterizer_draws_a_closed_surface_without_holes_and_the_nearest_face_in_front():
+    """The previews' z-buffer: a sphere covers exactly its disc, whichever way its faces wind; of two
+    overlapping squares the nearer one shows, whichever is listed first."""
+    from aniformer.io.render import Camera, rasterize
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)  # 1,280 faces, a few pixels each at 64 pixels
+    camera = Camera.looking_at(sphere.vertices[None], (10.0, -60.0), 64)
+    radius = 64 / (2 * camera.half)  # the unit sphere's radius in pixels
+    centre, _ = camera.project(np.zeros(3))
+    rows, columns = np.mgrid[:64, :64]
+    distance = np.hypot(columns + 0.5 - centre[0], rows + 0.5 - centre[1])
+    for faces in (sphere.faces, sphere.faces[:, ::-1]):
+        index = rasterize(np.asarray(sphere.vertices)[faces], camera)
+        assert (index[distance < 0.97 * radius] >= 0).all() and (index[distance > radius + 1] == -1).all()
+        assert index.max() < len(faces)
+    right, up, towards = camera.axes
+    square = np.array([[-1, -1], [1, -1], [1, 1], [-1, -1], [1, 1], [-1, 1]], float) * 0.5
+    flat = (square[:, :1] * right + square[:, 1:] * up).reshape(2, 3, 3)
+    near, far = flat + 0.3 * towards, flat - 0.3 * towards + 0.2 * right
+    middle = tuple(np.floor(camera.project(np.zeros(3))[0]).astype(int)[::-1])
+    assert rasterize(np.concatenate([near, far]), camera)[middle] in (0, 1)
+    assert rasterize(np.concatenate([far, near]), camera)[middle] in (2, 3)
+
+
 # --------------------------------------------------------------------------------------------
 # jobs/animate.py
 # --------------------------------------------------------------------------------------------

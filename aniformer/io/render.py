@@ -1,37 +1,134 @@
-"""Filmstrip previews of mesh sequences (docs, MLflow artifacts, eyeballing synthetic motions).
+"""Filmstrip and GIF previews of mesh sequences (docs, MLflow artifacts, animate's preview.gif).
 
-One row per sequence, one column per chosen frame, drawn with matplotlib's Agg backend as
-shaded triangles (Lambert shading, orthographic camera), so it works on headless machines
-without an OpenGL stack. Meshes are in metres with z up and the body facing -y; the default
-camera looks at the front from 30 degrees to the body's left so that motion towards the camera
-(punches, knee raises) still reads. All panels of a row share the same axes limits, so
-translation (hops) shows, and a faint line marks the row's lowest point (the ground).
+One row (filmstrip) or panel (GIF) per sequence, drawn by a z-buffer rasteriser in numpy as flat-shaded
+triangles (two-sided Lambert shading, orthographic camera) and written by Pillow: it works on headless
+machines without an OpenGL stack, and animate's path imports no plotting library (matplotlib's mplot3d cost
+~1 s to import and most of the preview's time; docs/benchmarks.md). Meshes are in metres with z up and the
+body facing -y; the default camera looks at the front from 30 degrees to the body's left so that motion
+towards the camera (punches, knee raises) still reads. All panels of a sequence share one camera, so
+translation (hops) shows, and a faint line marks the sequence's lowest point (the ground).
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
-
-from aniformer.io.files import atomic_path  # noqa: E402
+from aniformer.io.files import atomic_path
 
 _BASE_COLOUR = np.array([0.62, 0.70, 0.86])
 _LIGHT = np.array([-0.3, -1.0, 0.6]) / np.linalg.norm([-0.3, -1.0, 0.6])
+_BACKGROUND, _GROUND, _INK = (255, 255, 255), (153, 153, 153), (0, 0, 0)
+FILMSTRIP_SUPERSAMPLE = 2  # filmstrips (docs, MLflow) drawn 2x2 finer and averaged: smooth edges; GIFs at 1, for speed
 
 
-def _shaded_colours(triangles: np.ndarray) -> np.ndarray:
-    """Per-face RGB from a two-sided Lambert term plus ambient."""
+@dataclass(frozen=True)
+class Camera:
+    """An orthographic camera: ``axes`` rows are the screen's right, its up and the way to the viewer (world
+    units); a square of ``half`` world units either side of ``centre`` (screen coordinates) fills ``pixels``."""
+
+    axes: np.ndarray
+    centre: np.ndarray
+    half: float
+    pixels: int
+
+    @classmethod
+    def looking_at(cls, frames: np.ndarray, view: tuple[float, float], pixels: int, margin: float = 1.1) -> Camera:
+        """A camera that shows every frame of ``frames (N, V, 3)`` whole; ``view`` is (elevation, azimuth) in
+        degrees as matplotlib's ``view_init`` takes them: (0, -90) looks straight at the front (from -y)."""
+        elevation, azimuth = np.radians(view)
+        right = np.array([-np.sin(azimuth), np.cos(azimuth), 0.0])
+        up = np.array([-np.sin(elevation) * np.cos(azimuth), -np.sin(elevation) * np.sin(azimuth), np.cos(elevation)])
+        towards = np.cross(right, up)
+        axes = np.stack([right, up, towards])
+        low, high = _bounds(frames)
+        return cls(axes, (axes[:2] @ ((low + high) / 2)), margin * float((high - low).max()) / 2, pixels)
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(pixel coordinates ``(..., 2)``, x right and y down, depth ``(...)``, larger nearer) of ``points (..., 3)``."""
+        screen = np.asarray(points, np.float64) @ self.axes.T
+        scale = self.pixels / (2 * self.half)
+        xy = np.stack([(screen[..., 0] - self.centre[0]) * scale, (self.centre[1] - screen[..., 1]) * scale], -1)
+        return xy + self.pixels / 2, screen[..., 2]
+
+
+def _bounds(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    flat = np.asarray(frames, np.float64).reshape(-1, 3)
+    return flat.min(0), flat.max(0)
+
+
+def shaded_colours(triangles: np.ndarray) -> np.ndarray:
+    """Per-face RGB in [0, 1] of ``triangles (F, 3, 3)``: a two-sided Lambert term plus ambient."""
     normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
     normals /= np.linalg.norm(normals, axis=1, keepdims=True) + 1e-12
     diffuse = np.abs(normals @ _LIGHT)
     return np.clip(_BASE_COLOUR * (0.35 + 0.65 * diffuse[:, None]), 0.0, 1.0)
+
+
+def rasterize(triangles: np.ndarray, camera: Camera) -> np.ndarray:
+    """The face of ``triangles (F, 3, 3)`` that ``camera`` sees at each pixel ``(P, P)``, -1 where none: the
+    nearest whose triangle holds the pixel's centre (edges inclusive), so a closed surface has no holes however
+    small its faces. A z-buffer vectorised over every (face, pixel of its box) pair."""
+    size = camera.pixels
+    xy, depth = camera.project(triangles)
+    x, y = xy[..., 0].T, xy[..., 1].T  # (3, F)
+    nxt, far = [1, 2, 0], [2, 0, 1]
+    area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0])
+    solid = np.abs(area) > 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # each corner's barycentric weight, and the depth, as planes a * column + b * row + c (either winding)
+        weight = np.stack([y[nxt] - y[far], x[far] - x[nxt], x[nxt] * y[far] - x[far] * y[nxt]]) / area
+    planes = np.concatenate([weight, (weight * depth.T).sum(1, keepdims=True)], 1)  # (3 coefficients, 4, F)
+    first = np.clip(np.ceil(xy.min(1) - 0.5), 0, size).astype(np.int64)  # the pixels whose centres lie in the
+    width = np.clip(np.floor(xy.max(1) - 0.5), -1, size - 1).astype(np.int64) - first + 1  # face's box, clipped
+    count = np.where(solid, width.clip(0).prod(1), 0)
+    face = np.repeat(np.arange(len(triangles)), count)
+    within = np.arange(len(face)) - np.repeat(np.cumsum(count) - count, count)  # each pair's place in its box
+    row, column = np.divmod(within, width[face, 0])
+    column += first[face, 0]
+    row += first[face, 1]
+    on = planes[:, :, face]
+    value = on[0] * (column + 0.5) + on[1] * (row + 0.5) + on[2]  # (3 weights and the depth, pairs)
+    inside = np.minimum(np.minimum(value[0], value[1]), value[2]) >= -1e-9
+    pixel, face, nearness = (row * size + column)[inside], face[inside], value[3, inside]
+    nearest = np.full(size * size, np.iinfo(np.int64).max)
+    if not len(pixel):
+        return np.full((size, size), -1, np.int64)
+    # per pixel the least of (how far, face) packed in one integer: 40 bits of depth, 23 of the face
+    farness = ((nearness.max() - nearness) / (np.ptp(nearness) or 1.0) * (2**40 - 1)).astype(np.int64)
+    np.minimum.at(nearest, pixel, (farness << 23) | face)
+    index = np.where(nearest == np.iinfo(np.int64).max, -1, nearest & (2**23 - 1))
+    return index.reshape(size, size)
+
+
+def draw_panel(frame: np.ndarray, faces: np.ndarray, camera: Camera, ground: tuple[np.ndarray, np.ndarray],
+               supersample: int = 1) -> Image.Image:
+    """One frame ``(V, 3)`` of a mesh drawn by ``camera`` over the ``ground`` line's two world points; drawn
+    ``supersample`` times finer along each side, then averaged down (smoother edges)."""
+    fine = Camera(camera.axes, camera.centre, camera.half, camera.pixels * supersample)
+    triangles = np.asarray(frame, np.float64)[faces]
+    index = rasterize(triangles, fine)
+    image = Image.new("RGB", (fine.pixels, fine.pixels), _BACKGROUND)
+    (a, b), _ = fine.project(np.stack(ground))
+    ImageDraw.Draw(image).line([tuple(a), tuple(b)], fill=_GROUND, width=supersample)
+    pixels, covered = np.array(image), index >= 0
+    pixels[covered] = np.round(shaded_colours(triangles) * 255).astype(np.uint8)[index[covered]]
+    return Image.fromarray(pixels).reduce(supersample)
+
+
+def _ground(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A line across the back of the sequence's box at its lowest point (matplotlib's old axes' floor)."""
+    low, high = _bounds(frames)
+    middle, half = (low + high) / 2, float((high - low).max()) / 2
+    return np.array([middle[0] - half, high[1], low[2]]), np.array([middle[0] + half, high[1], low[2]])
+
+
+def _font(pixels: int) -> ImageFont.ImageFont:
+    return ImageFont.load_default(max(8, pixels))
 
 
 def render_filmstrip(
@@ -45,37 +142,32 @@ def render_filmstrip(
     """Render ``rows`` of (label, vertices (T, V, 3), faces (F, 3)) to a PNG at ``path``.
 
     Each row shows up to ``frames`` evenly spaced frames of its sequence (all frames if None).
-    ``view`` is matplotlib's (elevation, azimuth) in degrees; (0, -90) is straight from the front.
-    The file is written to a temporary name in the same directory and then renamed, so readers
+    ``view`` is (elevation, azimuth) in degrees, as matplotlib's ``view_init``; (0, -90) is straight from
+    the front. The file is written to a temporary name in the same directory and then renamed, so readers
     never see a partial PNG. Returns the path.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     columns = max(len(v) if frames is None else min(frames, len(v)) for _, v, _ in rows)
-    inch = panel_px / 100.0
-    header = 0.3 if title else 0.0
-    fig = plt.figure(figsize=(columns * inch, len(rows) * inch + header), dpi=100)
+    header = 24 if title else 0
+    sheet = Image.new("RGB", (columns * panel_px, len(rows) * panel_px + header), _BACKGROUND)
+    pen = ImageDraw.Draw(sheet)
     if title:
-        fig.suptitle(title, fontsize=8)
-    top = 1.0 - header / (len(rows) * inch + header)
+        pen.text((sheet.width / 2, header / 2), title, fill=_INK, font=_font(11), anchor="mm")
+    small, label_font = _font(panel_px // 16), _font(panel_px // 12)
     for r, (label, vertices, faces) in enumerate(rows):
-        vertices = np.asarray(vertices, dtype=np.float64)
+        vertices = np.asarray(vertices, np.float64)
         count = len(vertices) if frames is None else min(frames, len(vertices))
         chosen = np.linspace(0, len(vertices) - 1, count).round().astype(int)
-        box = _sequence_box(vertices)
+        camera, ground = Camera.looking_at(vertices, view, panel_px), _ground(vertices)
         for c, t in enumerate(chosen):
-            left, bottom = c / columns, top - (r + 1) * top / len(rows)
-            ax = fig.add_axes((left, bottom, 1 / columns, top / len(rows)), projection="3d")
-            _frame_axes(ax, box, view, zoom=1.6)
-            _add_mesh(ax, vertices[t][faces])
-            ax.text2D(0.5, 0.02, f"t={t}", transform=ax.transAxes, ha="center", fontsize=5)
+            left, top = c * panel_px, header + r * panel_px
+            sheet.paste(draw_panel(vertices[t], np.asarray(faces), camera, ground, FILMSTRIP_SUPERSAMPLE), (left, top))
+            pen.text((left + panel_px / 2, top + panel_px - 2), f"t={t}", fill=_INK, font=small, anchor="md")
             if c == 0:
-                ax.text2D(0.02, 0.92, label, transform=ax.transAxes, fontsize=6)
-    try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=100)
-    finally:
-        plt.close(fig)
+                pen.text((left + 3, top + 3), label, fill=_INK, font=label_font)
+    with atomic_path(path) as tmp:
+        sheet.save(tmp, format="PNG")
     return path
 
 
@@ -93,11 +185,10 @@ def render_animation_gif(
 
     All panels must have the same number of frames N. At most ``max_frames`` evenly spaced frames
     are drawn (all if None); each GIF frame lasts as long as the frames it stands for at ``fps``, so
-    the preview keeps real time. Each panel keeps one set of axes limits over the whole sequence.
+    the preview keeps real time. Each panel keeps one camera over the whole sequence.
     ``progress(1)`` is called after every drawn frame. Meshes with more than ``max_faces`` faces
-    are drawn decimated to that many (``preview_mesh``): matplotlib draws ~10^4-10^5 polygons per
-    second, and a 240-pixel panel shows no more (a body ~200 pixels tall: a face is a few pixels).
-    Written to a temporary name, then renamed.
+    are drawn decimated to that many (``preview_mesh``): a 240-pixel panel shows no more (a body ~200
+    pixels tall: a face is a few pixels). Written to a temporary name, then renamed.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -132,60 +223,20 @@ def preview_mesh(frames: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple
 
 
 def _gif_frames(panels: list[tuple[str, np.ndarray, np.ndarray]], chosen: np.ndarray, panel_px: int,
-                view: tuple[float, float], progress) -> list:
-    """The ``chosen`` frames of ``panels`` drawn side by side, as PIL images; ``progress(1)`` after each."""
-    from PIL import Image
-
-    inch = panel_px / 100.0
-    fig = plt.figure(figsize=(len(panels) * inch, inch), dpi=100)
-    axes = [fig.add_axes((p / len(panels), 0.0, 1 / len(panels), 1.0), projection="3d") for p in range(len(panels))]
-    frame_labels, meshes, images = [], [None] * len(panels), []
-    for ax, (label, vertices, _) in zip(axes, panels):  # the axes stay: clearing them was a third of the time
-        _frame_axes(ax, _sequence_box(vertices), view, zoom=1.5)
-        ax.text2D(0.03, 0.93, label, transform=ax.transAxes, fontsize=8)
-        frame_labels.append(ax.text2D(0.5, 0.02, "", transform=ax.transAxes, ha="center", fontsize=6))
-    try:
-        for t in chosen:
-            for p, (ax, (_, vertices, faces)) in enumerate(zip(axes, panels)):
-                if meshes[p] is not None:
-                    meshes[p].remove()
-                meshes[p] = _add_mesh(ax, np.asarray(vertices[t], np.float64)[faces])
-                frame_labels[p].set_text(f"frame {t}")
-            fig.canvas.draw()
-            rgba = np.asarray(fig.canvas.buffer_rgba())
-            # an octree palette: PIL's default median cut was a fifth of the preview's time (8x slower; mean error
-            # 1.2 of 255 levels against 0.1, not visible)
-            images.append(Image.fromarray(rgba[..., :3].copy()).quantize(256, method=Image.Quantize.FASTOCTREE,
-                                                                          dither=Image.Dither.NONE))
-            if progress is not None:
-                progress(1)
-    finally:
-        plt.close(fig)
+                view: tuple[float, float], progress) -> list[Image.Image]:
+    """The ``chosen`` frames of ``panels`` drawn side by side, as palette images; ``progress(1)`` after each."""
+    cameras = [(Camera.looking_at(vertices, view, panel_px), _ground(vertices)) for _, vertices, _ in panels]
+    label_font, small = _font(panel_px // 20), _font(panel_px // 26)
+    images = []
+    for t in chosen:
+        frame = Image.new("RGB", (len(panels) * panel_px, panel_px), _BACKGROUND)
+        pen = ImageDraw.Draw(frame)
+        for p, ((label, vertices, faces), (camera, ground)) in enumerate(zip(panels, cameras)):
+            frame.paste(draw_panel(vertices[t], np.asarray(faces), camera, ground), (p * panel_px, 0))
+            pen.text((p * panel_px + 6, 6), label, fill=_INK, font=label_font)
+            pen.text((p * panel_px + panel_px / 2, panel_px - 4), f"frame {t}", fill=_INK, font=small, anchor="md")
+        # an octree palette: PIL's default median cut was 8x slower (mean error 1.2 of 255 levels against 0.1)
+        images.append(frame.quantize(256, method=Image.Quantize.FASTOCTREE, dither=Image.Dither.NONE))
+        if progress is not None:
+            progress(1)
     return images
-
-
-def _sequence_box(vertices: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
-    """(centre, half side, low, high) of the cube around a whole sequence: one axes limit for all its frames."""
-    flat = np.asarray(vertices, np.float64).reshape(-1, 3)
-    low, high = flat.min(0), flat.max(0)
-    return (low + high) / 2, (high - low).max() / 2, low, high
-
-
-def _add_mesh(ax, triangles: np.ndarray) -> Poly3DCollection:
-    """Shaded ``triangles`` drawn on ``ax``: the collection, for removing it."""
-    mesh = Poly3DCollection(triangles, facecolors=_shaded_colours(triangles), linewidths=0)
-    ax.add_collection3d(mesh)
-    return mesh
-
-
-def _frame_axes(ax, box: tuple, view: tuple[float, float], zoom: float) -> None:
-    """Orthographic 3D axes limited to ``box``, a faint line at its lowest point (the ground)."""
-    centre, half, low, high = box
-    ax.plot([centre[0] - half, centre[0] + half], [high[1], high[1]], [low[2], low[2]], color="0.6", linewidth=0.5)
-    ax.set_xlim(centre[0] - half, centre[0] + half)
-    ax.set_ylim(centre[1] - half, centre[1] + half)
-    ax.set_zlim(centre[2] - half, centre[2] + half)
-    ax.set_box_aspect((1, 1, 1), zoom=zoom)
-    ax.set_proj_type("ortho")
-    ax.view_init(elev=view[0], azim=view[1])
-    ax.set_axis_off()
