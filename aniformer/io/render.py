@@ -78,31 +78,33 @@ def rasterize(triangles: np.ndarray, camera: Camera) -> np.ndarray:
     x, y = xy[..., 0].T, xy[..., 1].T  # (3, F)
     nxt, far = [1, 2, 0], [2, 0, 1]
     area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0])
-    solid = np.abs(area) > 1e-12
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):  # faces of no area are never drawn (no pairs below)
         # each corner's barycentric weight, and the depth, as planes a * column + b * row + c (either winding)
         weight = np.stack([y[nxt] - y[far], x[far] - x[nxt], x[nxt] * y[far] - x[far] * y[nxt]]) / area
-    planes = np.concatenate([weight, (weight * depth.T).sum(1, keepdims=True)], 1)  # (3 coefficients, 4, F)
+        nearness = (weight * depth.T).sum(1)  # (3 coefficients, F)
     first = np.clip(np.ceil(xy.min(1) - 0.5), 0, size).astype(np.int64)  # the pixels whose centres lie in the
     width = np.clip(np.floor(xy.max(1) - 0.5), -1, size - 1).astype(np.int64) - first + 1  # face's box, clipped
-    count = np.where(solid, width.clip(0).prod(1), 0)
+    count = np.where(np.abs(area) > 1e-12, width.clip(0).prod(1), 0)
     face = np.repeat(np.arange(len(triangles)), count)
     within = np.arange(len(face)) - np.repeat(np.cumsum(count) - count, count)  # each pair's place in its box
     row, column = np.divmod(within, width[face, 0])
     column += first[face, 0]
     row += first[face, 1]
-    on = planes[:, :, face]
-    value = on[0] * (column + 0.5) + on[1] * (row + 0.5) + on[2]  # (3 weights and the depth, pairs)
-    inside = np.minimum(np.minimum(value[0], value[1]), value[2]) >= -1e-9
-    pixel, face, nearness = (row * size + column)[inside], face[inside], value[3, inside]
-    nearest = np.full(size * size, np.iinfo(np.int64).max)
+    u, v = (column + 0.5).astype(np.float32), (row + 0.5).astype(np.float32)
+    planes = weight[:, :2].astype(np.float32)  # two corners' weights: the third is 1 - their sum
+    first_weight = planes[0, 0, face] * u + planes[1, 0, face] * v + planes[2, 0, face]
+    second_weight = planes[0, 1, face] * u + planes[1, 1, face] * v + planes[2, 1, face]
+    inside = ((np.minimum(first_weight, second_weight) >= -1e-5)  # float32: a hair of overlap, never a crack
+              & (first_weight + second_weight <= 1 + 1e-5))
+    pixel, face, u, v = (row * size + column)[inside], face[inside], u[inside], v[inside]
     if not len(pixel):
         return np.full((size, size), -1, np.int64)
+    near = nearness[0, face] * u + nearness[1, face] * v + nearness[2, face]
     # per pixel the least of (how far, face) packed in one integer: 40 bits of depth, 23 of the face
-    farness = ((nearness.max() - nearness) / (np.ptp(nearness) or 1.0) * (2**40 - 1)).astype(np.int64)
+    farness = ((near.max() - near) / (np.ptp(near) or 1.0) * (2**40 - 1)).astype(np.int64)
+    nearest = np.full(size * size, np.iinfo(np.int64).max)
     np.minimum.at(nearest, pixel, (farness << 23) | face)
-    index = np.where(nearest == np.iinfo(np.int64).max, -1, nearest & (2**23 - 1))
-    return index.reshape(size, size)
+    return np.where(nearest == np.iinfo(np.int64).max, -1, nearest & (2**23 - 1)).reshape(size, size)
 
 
 def draw_panel(frame: np.ndarray, faces: np.ndarray, camera: Camera, ground: tuple[np.ndarray, np.ndarray],
