@@ -459,6 +459,14 @@ def test_preview_rasterizer_draws_a_closed_surface_without_holes_and_the_nearest
         index = rasterize(np.asarray(sphere.vertices)[faces], camera)
         assert (index[distance < 0.97 * radius] >= 0).all() and (index[distance > radius + 1] == -1).all()
         assert index.max() < len(faces)
+    triangles = np.asarray(sphere.vertices)[sphere.faces]
+    whole = rasterize(triangles, camera)
+    assert np.array_equal(rasterize(triangles, camera, pairs_at_once=500), whole)  # in chunks: the same picture
+    torn, shown = triangles.copy(), whole[32, 32]
+    torn[shown, 0] = np.nan  # a face not finite is not drawn (the one behind shows); the others as before
+    missing = rasterize(torn, camera)
+    assert shown >= 0 and missing[32, 32] >= 0 and (missing != shown).all()
+    assert np.array_equal(missing[whole != shown], whole[whole != shown])
     right, up, towards = camera.axes
     square = np.array([[-1, -1], [1, -1], [1, 1], [-1, -1], [1, 1], [-1, 1]], float) * 0.5
     flat = (square[:, :1] * right + square[:, 1:] * up).reshape(2, 3, 3)

@@ -70,41 +70,46 @@ def shaded_colours(triangles: np.ndarray) -> np.ndarray:
     return np.clip(_BASE_COLOUR * (0.35 + 0.65 * diffuse[:, None]), 0.0, 1.0)
 
 
-def rasterize(triangles: np.ndarray, camera: Camera) -> np.ndarray:
+def rasterize(triangles: np.ndarray, camera: Camera, pairs_at_once: int = 2**20) -> np.ndarray:
     """The face of ``triangles (F, 3, 3)`` that ``camera`` sees at each pixel ``(P, P)``, -1 where none: the
     nearest whose triangle holds the pixel's centre (edges inclusive), so a closed surface has no holes however
-    small its faces. A z-buffer vectorised over every (face, pixel of its box) pair."""
+    small its faces. A z-buffer vectorised over every (face, pixel of its box) pair, ``pairs_at_once`` at most
+    at a time (a torn mesh's long faces cover whole boxes of pixels); faces not finite are not drawn."""
     size = camera.pixels
     xy, depth = camera.project(triangles)
     x, y = xy[..., 0].T, xy[..., 1].T  # (3, F)
     nxt, far = [1, 2, 0], [2, 0, 1]
     area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0])
-    with np.errstate(divide="ignore", invalid="ignore"):  # faces of no area are never drawn (no pairs below)
+    drawn = np.isfinite(area) & (np.abs(area) > 1e-12) & np.isfinite(depth).all(1)
+    with np.errstate(divide="ignore", invalid="ignore"):  # faces not drawn make no pairs below
         # each corner's barycentric weight, and the depth, as planes a * column + b * row + c (either winding)
         weight = np.stack([y[nxt] - y[far], x[far] - x[nxt], x[nxt] * y[far] - x[far] * y[nxt]]) / area
         nearness = (weight * depth.T).sum(1)  # (3 coefficients, F)
-    first = np.clip(np.ceil(xy.min(1) - 0.5), 0, size).astype(np.int64)  # the pixels whose centres lie in the
-    width = np.clip(np.floor(xy.max(1) - 0.5), -1, size - 1).astype(np.int64) - first + 1  # face's box, clipped
-    count = np.where(np.abs(area) > 1e-12, width.clip(0).prod(1), 0)
-    face = np.repeat(np.arange(len(triangles)), count)
-    within = np.arange(len(face)) - np.repeat(np.cumsum(count) - count, count)  # each pair's place in its box
-    row, column = np.divmod(within, width[face, 0])
-    column += first[face, 0]
-    row += first[face, 1]
-    u, v = (column + 0.5).astype(np.float32), (row + 0.5).astype(np.float32)
+        first = np.clip(np.nan_to_num(np.ceil(xy.min(1) - 0.5)), 0, size).astype(np.int64)  # the pixels whose
+        last = np.clip(np.nan_to_num(np.floor(xy.max(1) - 0.5)), -1, size - 1).astype(np.int64)  # centres lie in
+    width = last - first + 1  # the face's box, clipped to the picture
+    count = np.where(drawn, width.clip(0).prod(1), 0)
     planes = weight[:, :2].astype(np.float32)  # two corners' weights: the third is 1 - their sum
-    first_weight = planes[0, 0, face] * u + planes[1, 0, face] * v + planes[2, 0, face]
-    second_weight = planes[0, 1, face] * u + planes[1, 1, face] * v + planes[2, 1, face]
-    inside = ((np.minimum(first_weight, second_weight) >= -1e-5)  # float32: a hair of overlap, never a crack
-              & (first_weight + second_weight <= 1 + 1e-5))
-    pixel, face, u, v = (row * size + column)[inside], face[inside], u[inside], v[inside]
-    if not len(pixel):
-        return np.full((size, size), -1, np.int64)
-    near = nearness[0, face] * u + nearness[1, face] * v + nearness[2, face]
-    # per pixel the least of (how far, face) packed in one integer: 40 bits of depth, 23 of the face
-    farness = ((near.max() - near) / (np.ptp(near) or 1.0) * (2**40 - 1)).astype(np.int64)
+    closest, deepest = (depth[drawn].max(), np.ptp(depth[drawn]) or 1.0) if drawn.any() else (0.0, 1.0)
     nearest = np.full(size * size, np.iinfo(np.int64).max)
-    np.minimum.at(nearest, pixel, (farness << 23) | face)
+    starts = np.cumsum(count) - count  # each face's first pair, counted over all faces
+    splits = np.unique(np.r_[0, np.searchsorted(starts, np.arange(pairs_at_once, count.sum(), pairs_at_once)), len(count)])
+    for low, high in zip(splits[:-1], splits[1:]):
+        face = np.repeat(np.arange(low, high), count[low:high])
+        within = np.arange(len(face)) + starts[low] - starts[face]  # each pair's place in its face's box
+        row, column = np.divmod(within, width[face, 0])
+        column += first[face, 0]
+        row += first[face, 1]
+        u, v = (column + 0.5).astype(np.float32), (row + 0.5).astype(np.float32)
+        first_weight = planes[0, 0, face] * u + planes[1, 0, face] * v + planes[2, 0, face]
+        second_weight = planes[0, 1, face] * u + planes[1, 1, face] * v + planes[2, 1, face]
+        inside = ((np.minimum(first_weight, second_weight) >= -1e-5)  # float32: a hair of overlap, never a crack
+                  & (first_weight + second_weight <= 1 + 1e-5))
+        pixel, face, u, v = (row * size + column)[inside], face[inside], u[inside], v[inside]
+        near = nearness[0, face] * u + nearness[1, face] * v + nearness[2, face]
+        # per pixel the least of (how far, face) packed in one integer: 40 bits of depth, 23 of the face
+        farness = ((closest - near) / deepest * (2**40 - 1)).clip(0, 2**40 - 1).astype(np.int64)
+        np.minimum.at(nearest, pixel, (farness << 23) | face)
     return np.where(nearest == np.iinfo(np.int64).max, -1, nearest & (2**23 - 1)).reshape(size, size)
 
 
