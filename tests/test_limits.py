@@ -419,7 +419,9 @@ def test_the_sweep_and_retarget_jobs_local_ray_listen_on_localhost_only(job, tmp
     args = [*SWEEP, "--out", str(tmp_path / "sweep")] if job == "sweep" else retarget_args(tmp_path, job_main)
     listeners = job_listeners(job, args, tmp_path)
     names = {name for _, _, name in listeners}
-    assert {"gcs_server", "raylet", WORKER[job]} <= names, listeners  # its own Ray and its workers were watched
+    assert {"gcs_server", "raylet"} <= names, listeners  # its own Ray was watched, and its workers: named by
+    # their task while one runs ("ray::Animator.animate"), by the actor's class only while idle
+    assert any(name.startswith(WORKER[job]) for name in names), listeners
     assert not beyond_this_machine(listeners), f"listening beyond this machine: {beyond_this_machine(listeners)}"
 
 
