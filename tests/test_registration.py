@@ -461,6 +461,30 @@ def test_surface_parts_join_vertices_split_at_seams_and_put_the_largest_first():
     np.testing.assert_allclose(shares, [4.5 / 5.5, 1.0 / 5.5])
 
 
+def test_closest_points_are_the_nearest_on_every_face_and_skip_faces_of_no_area():
+    """Random points near a sphere land at their nearest point over all faces (brute force), their barycentric
+    weights rebuilding it; a face of no area (which has no barycentric weights) is never the answer."""
+    import trimesh
+
+    from aniformer.surface import closest_points
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    vertices, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    points = np.random.default_rng(0).normal(size=(500, 3)) * 0.7
+    found = closest_points(points, vertices, faces)
+    triangles = np.repeat(vertices[faces][None], len(points), 0).reshape(-1, 3, 3)
+    nearest = trimesh.triangles.closest_point(triangles, np.repeat(points, len(faces), 0))
+    brute = np.linalg.norm(nearest - np.repeat(points, len(faces), 0), axis=1).reshape(len(points), -1).min(1)
+    np.testing.assert_allclose(np.linalg.norm(found.on(vertices, faces) - points, axis=1), brute, atol=1e-9)
+    np.testing.assert_allclose(found.weights.sum(1), 1.0)
+
+    square = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [5, 0, 0], [6, 0, 0], [7, 0, 0]], np.float64)
+    sliver = np.array([[4, 5, 6], [0, 1, 2], [1, 3, 2]])  # the first has no area: three points on a line
+    found = closest_points(np.array([[5.5, 0.1, 0.0], [0.25, 0.25, 1.0]]), square, sliver)
+    np.testing.assert_array_equal(found.face, [2, 1])
+    np.testing.assert_allclose(found.on(square, sliver), [[1.0, 0.1, 0.0], [0.25, 0.25, 0.0]], atol=1e-12)
+
+
 def test_a_prop_rides_the_hand_that_holds_it_as_a_rigid_whole(stream):
     """A stick held out from a hand, a separate part beyond the body (a sword): the body is fitted without it,
     the self-check trusts the fit, and in every driving pose the stick keeps its shape and stays at the hand.
