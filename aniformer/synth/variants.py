@@ -297,7 +297,15 @@ def variant_pairs(stream: StreamPairs, split: str, epoch: int, indices: Sequence
     """Per pair: ``driving (T, V, 3)`` at the stream's topology and, per variant, a dict of
     ``target (N, 3)``, ``faces (F, 3)``, ``ground_truth (T, N, 3)`` and ``copy_driver (T, N, 3)``
     (``foreign_driver``: ``T = DRIVER_FRAMES``, and its own ``driving (T, M, 3)`` and
-    ``driving_faces``); all bounding-box centred per mesh."""
+    ``driving_faces``); all bounding-box centred per mesh. Each pair is made alone, so it is the same
+    whatever else is drawn with it: Anny's batched bodies differ with the batch at float level, and a
+    decimation or a fit turns that into another mesh (docs/results.md)."""
+    return [pair for index in indices for pair in _variant_batch(stream, split, epoch, [index], variants)]
+
+
+def _variant_batch(stream: StreamPairs, split: str, epoch: int, indices: Sequence[int],
+                   variants: Sequence[str]) -> list[dict]:
+    """``variant_pairs`` of ``indices`` made in one batch."""
     draws = stream.draws(split, epoch, indices)
     topologies = {"same": stream.topology, "shuffled": stream.topology,
                   "topology": OTHER_TOPOLOGY.get(stream.topology, "notoes_collapse3pc")}
