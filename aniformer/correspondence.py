@@ -39,6 +39,7 @@ from aniformer.surface import SurfacePoints, closest_points, surface_parts
 from aniformer.transfer import vertex_rotations
 
 FIT_TRIES = 3  # fits of a character, each with its own sampling seed, until the self-check trusts one
+FIT_AGREEMENT = 0.03  # of the body's height: two good fits of a driver read its clip this alike (bench/driver_consensus.py)
 
 
 class Correspondence:
@@ -187,24 +188,36 @@ def register_mesh(vertices: np.ndarray, faces: np.ndarray, topology: str, tries:
     return best[1]
 
 
+def fit_disagreement(first: Correspondence, second: Correspondence, frames: np.ndarray) -> float:
+    """How far apart two fits of one mesh read ``frames (T, N, 3)`` of it onto the template: the worst body part's
+    RMS distance over the frames, in body heights. Two good fits put each template vertex on the same body point."""
+    from aniformer.trust import part_labels
+
+    parts, _ = part_labels(first.topology)
+    distance = np.square(first.to_template(frames) - second.to_template(frames)).sum(-1)
+    return float(max(np.sqrt(distance[:, parts == k].mean()) for k in np.unique(parts)) / first.fitted.height)
+
+
 def register_clip(frames: np.ndarray, faces: np.ndarray, topology: str, candidates: int = 3):
     """A driving clip of a foreign topology registered on the whole clip, not its first frame alone:
     (the ``Correspondence``, its ``aniformer.trust.Trust``).
 
-    Fits on up to ``candidates`` frames spread over the clip (first frame first) and keeps the
-    correspondence the self-check trusts most (its own fit, and the stretch of the template read from
-    frames over the whole clip); stops at the first one it trusts."""
+    Fits on up to ``candidates`` frames spread over the clip (first frame first), each checked by the self-check
+    (its own fit, and the stretch of the template read from frames over the whole clip), until two fits it trusts
+    read the clip alike (``fit_disagreement`` within ``FIT_AGREEMENT``); keeps the one it trusts most. Stopping at
+    the first trusted fit kept wrong ones that a later frame's fit would have shown (docs/results.md)."""
     from aniformer.trust import Trust, registration_checks, stretch_check
 
     shown = frames[np.unique(np.linspace(0, len(frames) - 1, min(len(frames), 64)).round().astype(int))]
-    best = None
+    fits = []  # (badness, fit, trust)
     for k in np.unique(np.linspace(0, len(frames) - 1, candidates).round().astype(int)):
         fit = Correspondence(frames[k], faces, topology)
         trust = Trust((*registration_checks(fit, "driver"),
                        stretch_check(fit.to_template(shown), fit.template, fit.template_faces, "driver on the template")))
-        badness = _badness(trust.checks)
-        if best is None or badness < best[0]:
-            best = (badness, fit, trust)
-        if trust.ok:
+        agreed = trust.ok and any(other.ok and fit_disagreement(fit, earlier, shown) <= FIT_AGREEMENT
+                                  for _, earlier, other in fits)
+        fits.append((_badness(trust.checks), fit, trust))
+        if agreed:
             break
-    return best[1], best[2]
+    _, fit, trust = min(fits, key=lambda entry: entry[0])
+    return fit, trust
