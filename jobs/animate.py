@@ -164,6 +164,9 @@ def main(argv: list[str]) -> None:
         played = summary["driving_animation"]
         print(f"driver: animation {played['name']!r} ({played['index'] + 1} of {played['of']}) of {args.driving}, "
               f"sampled at {played['fps']:g} fps" + (" (--animation to choose another)" if played["of"] > 1 else ""))
+    for role, up in summary["up"].items():
+        if up["why"].startswith("the body stands along") and up["axis"] == "y":  # against OBJ's z: say so
+            print(f"read the {role} as y-up ({up['why']}); --up z if it lies along y in a z-up file")
     for role, unit in summary["units"].items():
         if unit["unit"] != "m":
             print(f"read the {role} in {unit['unit']} ({unit['why']}); outputs in the target's unit")

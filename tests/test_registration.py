@@ -88,15 +88,25 @@ def test_skinned_transfer_through_the_registration_of_a_remeshed_target(shipped,
     assert float(scores[SKINNED]["remeshed"][0]) < float(scores[TRANSFER]["remeshed"][0]), scores
 
 
+def _y_up_obj_line(line: str) -> str:
+    """An OBJ line of a z-up file as a y-up file writes it: a vertex's (x, y, z) as (x, z, -y), as text (exact)."""
+    if not line.startswith("v "):
+        return line
+    x, y, z = line.split()[1:]
+    return f"v {x} {z} {y[1:] if y.startswith('-') else '-' + y}"
+
+
 def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main, capsys, monkeypatch):
     """jobs/animate.py without --checkpoint or --up: a decimated body (its own topology) saved as a GLB
     in glTF's y-up axes, driven by a stream clip. It is read as y-up, registered in any orientation,
     trusted by the self-check, and its frames are written in its own (y-up) axes, upright. Animated
-    again, it loads the first run's fit and writes the same bytes."""
+    again by the clip in y-up OBJs, it loads the first run's fit, says it read the clip as y-up and writes the
+    same bytes."""
     import trimesh
 
     from aniformer.cli.exits import run
     from aniformer.geometry import from_z_up
+    from aniformer.io.glb import read_glb
     from aniformer.io.mesh import load_mesh
     from aniformer.registration import CACHE_ENV
     from aniformer.synth.variants import remesh
@@ -127,13 +137,21 @@ def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main,
     assert np.abs(center_bbox(squat) - center_bbox(from_z_up(vertices, "y"))).max() > 0.05
     assert not summary["registered"]["target"]["fit_cached"] and summary["registered"]["target"]["fit_seed"] == 0
     assert len(list((tmp_path / "fits" / "registrations").iterdir())) == 1  # trusted at once: fitted once
-    run(job_main("animate"), ["--target", str(tmp_path / "character.glb"), "--driving", str(samples / "driving"),
+    y_up = tmp_path / "y_up" / "driving"  # the same clip in y-up OBJs, digit for digit
+    y_up.mkdir(parents=True)
+    for frame in sorted((samples / "driving").iterdir()):
+        (y_up / frame.name).write_text("\n".join(map(_y_up_obj_line, frame.read_text().splitlines())) + "\n")
+    run(job_main("animate"), ["--target", str(tmp_path / "character.glb"), "--driving", str(y_up),
                               "--out", str(tmp_path / "again"), "--no-progress", "--preview-frames", "0"])
-    assert "the fit of an earlier run" in capsys.readouterr().err
-    assert json.loads((tmp_path / "again" / "animation.json").read_text())["registered"]["target"]["fit_cached"]
+    captured = capsys.readouterr()
+    assert "the fit of an earlier run" in captured.err
+    assert "read the driver as y-up (the body stands along y)" in captured.out
+    again = json.loads((tmp_path / "again" / "animation.json").read_text())
+    assert again["registered"]["target"]["fit_cached"] and again["up"]["driver"]["axis"] == "y"
     for frame in sorted((anim / "frames").iterdir()):
         assert (tmp_path / "again" / "frames" / frame.name).read_bytes() == frame.read_bytes()
-    assert (tmp_path / "again" / "animation.glb").read_bytes() == (anim / "animation.glb").read_bytes()
+    np.testing.assert_array_equal(read_glb(tmp_path / "again" / "animation.glb")["frames"],  # its extras name the clip
+                                  read_glb(anim / "animation.glb")["frames"])
 
 
 def test_a_kept_fit_is_loaded_only_for_the_same_mesh_and_options(tmp_path, monkeypatch):
