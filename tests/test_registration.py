@@ -101,7 +101,7 @@ def test_animate_a_y_up_glb_character_with_the_shipped_model(tmp_path, job_main,
     in glTF's y-up axes, driven by a stream clip. It is read as y-up, registered in any orientation,
     trusted by the self-check, and its frames are written in its own (y-up) axes, upright. Animated
     again by the clip in y-up OBJs, it loads the first run's fit, says it read the clip as y-up and writes the
-    same bytes."""
+    same OBJ bytes and GLB frames."""
     import trimesh
 
     from aniformer.cli.exits import run

@@ -84,8 +84,9 @@ def test_new_variants_are_foreign_meshes_whose_ground_truth_is_the_target_in_its
 
 
 def test_a_pair_is_the_same_whatever_is_drawn_with_it():
-    """``foreign_driver`` pair 1 drawn alone and beside pair 0: the same bytes (batched, Anny's bodies differed at
-    float level and the driver's decimation came out another mesh, so a pair's registration moved with ``--pairs``)."""
+    """``foreign_driver`` and ``parts`` pair 1 drawn alone and beside pair 0: the same bytes. Made in one batch, Anny's
+    bodies differed with the batch at float level (here the targets and ground truth; in an 8-pair batch of the
+    shipped model's validation pairs, a driver's decimation came out another mesh, and its fit another basin)."""
     stream = StreamPairs(TOPOLOGY, window=3, seed=0)
     (alone,) = variant_pairs(stream, "seen", 0, [1], ["foreign_driver", "parts"])
     _, beside = variant_pairs(stream, "seen", 0, [0, 1], ["foreign_driver", "parts"])
