@@ -188,14 +188,14 @@ def register_mesh(vertices: np.ndarray, faces: np.ndarray, topology: str, tries:
     return best[1]
 
 
-def fit_disagreement(first: Correspondence, second: Correspondence, frames: np.ndarray) -> float:
-    """How far apart two fits of one mesh read ``frames (T, N, 3)`` of it onto the template: the worst body part's
-    RMS distance over the frames, in body heights. Two good fits put each template vertex on the same body point."""
+def part_rms_distance(first: np.ndarray, second: np.ndarray, topology: str) -> float:
+    """The worst body part's RMS distance between two sequences ``(T, V_a, 3)`` on ``topology``'s template: how far
+    apart two fits of one clip read it (two good fits put each template vertex on the same body point)."""
     from aniformer.trust import part_labels
 
-    parts, _ = part_labels(first.topology)
-    distance = np.square(first.to_template(frames) - second.to_template(frames)).sum(-1)
-    return float(max(np.sqrt(distance[:, parts == k].mean()) for k in np.unique(parts)) / first.fitted.height)
+    parts, _ = part_labels(topology)
+    distance = np.square(first - second).sum(-1)
+    return float(max(np.sqrt(distance[:, parts == k].mean()) for k in np.unique(parts)))
 
 
 def register_clip(frames: np.ndarray, faces: np.ndarray, topology: str, candidates: int = 3):
@@ -204,20 +204,22 @@ def register_clip(frames: np.ndarray, faces: np.ndarray, topology: str, candidat
 
     Fits on up to ``candidates`` frames spread over the clip (first frame first), each checked by the self-check
     (its own fit, and the stretch of the template read from frames over the whole clip), until two fits it trusts
-    read the clip alike (``fit_disagreement`` within ``FIT_AGREEMENT``); keeps the one it trusts most. Stopping at
+    read the clip alike (``part_rms_distance`` within ``FIT_AGREEMENT`` of the height); keeps the one it trusts most. Stopping at
     the first trusted fit kept wrong ones that a later frame's fit would have shown (docs/results.md)."""
     from aniformer.trust import Trust, registration_checks, stretch_check
 
     shown = frames[np.unique(np.linspace(0, len(frames) - 1, min(len(frames), 64)).round().astype(int))]
-    fits = []  # (badness, fit, trust)
+    fits = []  # (badness, fit, trust, the clip read on the template)
     for k in np.unique(np.linspace(0, len(frames) - 1, candidates).round().astype(int)):
         fit = Correspondence(frames[k], faces, topology)
+        read = fit.to_template(shown)
         trust = Trust((*registration_checks(fit, "driver"),
-                       stretch_check(fit.to_template(shown), fit.template, fit.template_faces, "driver on the template")))
-        agreed = trust.ok and any(other.ok and fit_disagreement(fit, earlier, shown) <= FIT_AGREEMENT
-                                  for _, earlier, other in fits)
-        fits.append((_badness(trust.checks), fit, trust))
+                       stretch_check(read, fit.template, fit.template_faces, "driver on the template")))
+        agreed = trust.ok and any(
+            other.ok and part_rms_distance(read, other_read, topology) <= FIT_AGREEMENT * fit.fitted.height
+            for _, _, other, other_read in fits)
+        fits.append((_badness(trust.checks), fit, trust, read))
         if agreed:
             break
-    _, fit, trust = min(fits, key=lambda entry: entry[0])
+    _, fit, trust, _ = min(fits, key=lambda entry: entry[0])
     return fit, trust

@@ -4,10 +4,9 @@
 
 Per ``foreign_driver`` pair of split ``seen``: the driver's mesh fitted on frames 0, the middle and the last
 (``aniformer.correspondence.register_clip``'s candidates), each fit's registration checks, each fit's error
-(the clip read on the template against the true driver on it: the worst body part's RMS over frames, after
-removing each frame's mean, in body heights) and every two fits' disagreement
-(``aniformer.correspondence.fit_disagreement``). A limit on the disagreement must sit between two good fits
-and a good and a bad one.
+(the clip read on the template against the true driver on it, each frame's mean removed) and every two fits'
+disagreement, both as ``aniformer.correspondence.part_rms_distance`` in body heights. A limit on the
+disagreement must sit between two good fits and a good and a bad one.
 """
 
 from __future__ import annotations
@@ -20,16 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from aniformer.checkpoint import PRETRAINED, load_checkpoint
-from aniformer.correspondence import Correspondence, fit_disagreement
+from aniformer.correspondence import Correspondence, part_rms_distance
 from aniformer.synth.stream import StreamPairs
 from aniformer.synth.variants import variant_pairs
-from aniformer.trust import part_labels, registration_checks, stretch_check
-
-
-def _part_error(read: np.ndarray, truth: np.ndarray, parts: np.ndarray, height: float) -> float:
-    read, truth = read - read.mean(1, keepdims=True), truth - truth.mean(1, keepdims=True)
-    distance = np.square(read - truth).sum(-1)  # (T, V)
-    return float(max(np.sqrt(distance[:, parts == k].mean()) for k in np.unique(parts)) / height)
+from aniformer.trust import registration_checks, stretch_check
 
 
 def main() -> None:
@@ -41,22 +34,23 @@ def main() -> None:
     state = load_checkpoint(PRETRAINED)
     topology = state["config"]["data"]["topology"]
     stream = StreamPairs(topology, window=state["config"]["model"].get("window", 3), seed=0)
-    parts, _ = part_labels(topology)
     rows = []
     for index in range(args.first, args.first + args.pairs):
         case = variant_pairs(stream, "seen", 0, [index], ["foreign_driver"])[0]["foreign_driver"]
         frames = case["driving"]
-        fits = {}
+        truth = case["copy_driver"] - case["copy_driver"].mean(1, keepdims=True)
+        reads = {}
         for k in np.unique(np.linspace(0, len(frames) - 1, 3).round().astype(int)):
             fit = Correspondence(frames[k], case["driving_faces"], topology)
             read = fit.to_template(frames)
             checks = [*registration_checks(fit, "driver"), stretch_check(read, fit.template, fit.template_faces)]
-            fits[int(k)] = fit
-            error = _part_error(read, case["copy_driver"], parts, fit.fitted.height)
+            reads[int(k)] = read, fit.fitted.height
+            error = part_rms_distance(read - read.mean(1, keepdims=True), truth, topology) / fit.fitted.height
             rows.append({"pair": index, "frame": int(k), "error": error,
                          "badness": max(c.value / c.limit for c in checks), "failed": [c.name for c in checks if not c.ok]})
-        for a, b in itertools.combinations(fits, 2):
-            rows.append({"pair": index, "frames": [a, b], "disagreement": fit_disagreement(fits[a], fits[b], frames)})
+        for a, b in itertools.combinations(reads, 2):
+            disagreement = part_rms_distance(reads[a][0], reads[b][0], topology) / reads[a][1]
+            rows.append({"pair": index, "frames": [a, b], "disagreement": disagreement})
         print(json.dumps(rows[-6:]), flush=True)
     args.out.write_text(json.dumps(rows, indent=1))
 
