@@ -54,8 +54,8 @@ def _edge_graph(vertices: np.ndarray, faces: np.ndarray) -> scipy.sparse.csr_mat
     """The mesh's edges weighted by length, and its vertices split at UV seams or hard edges (several vertices at
     one position, as glTF exports write them) joined to the first of their position: one place on the surface."""
     i, j = mesh_edges(faces, len(vertices))
-    _, place = np.unique(vertices, axis=0, return_inverse=True)
-    place = place.reshape(-1)
+    rows = np.ascontiguousarray(vertices + 0.0)  # + 0.0 turns -0.0 into 0.0: one position, one byte pattern
+    _, place = np.unique(rows.view(np.dtype((np.void, rows.itemsize * 3))).ravel(), return_inverse=True)
     first = np.empty(place.max() + 1, np.int64)
     first[place[::-1]] = np.arange(len(vertices))[::-1]  # each position's first vertex
     split = np.flatnonzero(first[place] != np.arange(len(vertices)))

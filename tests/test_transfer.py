@@ -64,3 +64,19 @@ def test_factor_memory_grows_linearly_not_quadratically():
         per_vertex.append((factor.L.nnz + factor.U.nnz) / len(sphere.vertices))
     assert per_vertex[1] < 200 < 10_242 / 2  # measured ~110 (minimum-degree ordering); dense: 5,121
     assert per_vertex[1] < 3 * per_vertex[0]
+
+
+def test_mesh_edges_are_each_edge_once_in_order_and_split_vertices_join_at_signed_zero():
+    """mesh_edges against a set of sorted corner pairs (both faces of an edge give it once, sorted by i then j), on a
+    mesh with an unused vertex; the edge graph joins vertices at one position, 0.0 and -0.0 alike (a mirrored seam)."""
+    from aniformer.surface import _edge_graph
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    faces = np.asarray(sphere.faces, np.int64)[::-1] + 1  # vertex 0 unused, faces in another order
+    expected = sorted({tuple(sorted((int(f[a]), int(f[b])))) for f in faces for a, b in ((0, 1), (1, 2), (2, 0))})
+    i, j = mesh_edges(faces, len(sphere.vertices) + 1)
+    assert list(zip(i.tolist(), j.tolist())) == expected and i.dtype == j.dtype == np.int64
+
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [-0.0, 0, 0], [0, -1, 0]])
+    graph = _edge_graph(vertices, np.array([[0, 1, 2], [3, 4, 1]]))
+    assert graph[3, 0] > 0 and graph.nnz == 7  # 6 edges of two triangles, and the seam joining 3 to 0
