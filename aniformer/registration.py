@@ -30,6 +30,7 @@ import scipy.spatial
 import torch
 import trimesh
 
+from aniformer.geometry import STANDS_ALONG
 from aniformer.io.files import atomic_path
 from aniformer.surface import (
     GeodesicFrame,
@@ -424,5 +425,5 @@ def detect_up(frames: np.ndarray, faces: np.ndarray, convention: str) -> tuple[s
     votes = {up: int((axes @ np.eye(3)[{"z": 2, "y": 1}[up]] > UP_CONE).sum()) for up in ("z", "y")}
     standing = max(votes, key=votes.get)
     if 2 * votes[standing] > len(frames):
-        return standing, f"the body stands along {standing}"
+        return standing, STANDS_ALONG.format(standing)
     return convention, "the format's convention: the body does not stand along y or z"

@@ -47,7 +47,7 @@ from aniformer.cli.args import ArgumentParser, options_from, resolve_device
 from aniformer.cli.exits import run
 from aniformer.cli.locks import releases_locks
 from aniformer.cli.outputs import claim_output
-from aniformer.geometry import UP_AXES
+from aniformer.geometry import STANDS_ALONG, UP_AXES
 from aniformer.io.glb import FRAMES_PER_MESH, MAX_MORPH_TARGETS
 from aniformer.io.mesh import DEFAULT_MAX_VERTICES, UNITS
 
@@ -165,7 +165,7 @@ def main(argv: list[str]) -> None:
         print(f"driver: animation {played['name']!r} ({played['index'] + 1} of {played['of']}) of {args.driving}, "
               f"sampled at {played['fps']:g} fps" + (" (--animation to choose another)" if played["of"] > 1 else ""))
     for role, up in summary["up"].items():
-        if up["why"].startswith("the body stands along") and up["axis"] == "y":  # against OBJ's z: say so
+        if up["why"] == STANDS_ALONG.format("y"):  # read from the body, against OBJ's z: say so
             print(f"read the {role} as y-up ({up['why']}); --up z if it lies along y in a z-up file")
     for role, unit in summary["units"].items():
         if unit["unit"] != "m":
