@@ -269,27 +269,23 @@ def _case(target: np.ndarray, faces: np.ndarray, truth: np.ndarray, drive: np.nd
             "copy_driver": center_bbox(drive)}
 
 
-def _foreign_driver(stream: StreamPairs, split: str, epoch: int, indices: Sequence[int]) -> list[dict]:
-    """Per pair, the ``foreign_driver`` case: ``driving (DRIVER_FRAMES, N, 3)`` and ``driving_faces``
+def _foreign_driver(stream: StreamPairs, split: str, epoch: int, index: int) -> dict:
+    """Pair ``index``'s ``foreign_driver`` case: ``driving (DRIVER_FRAMES, N, 3)`` and ``driving_faces``
     of the driver's own topology besides the target, ground truth and copy-driver on the stream's."""
     clip = copy.copy(stream)  # the same pairs (bodies, target pose), a longer driving window
     clip.window = DRIVER_FRAMES
-    draws = clip.draws(split, epoch, indices)
-    drive, truth, target = pose_pairs(_body_model(stream.topology), draws)
-    B, T, bones = draws["motion"].shape[:3]
+    draws = clip.draws(split, epoch, [index])
+    (drive,), (truth,), (target,) = pose_pairs(_body_model(stream.topology), draws)
+    _, T, bones = draws["motion"].shape[:3]
     full = _body_model(FULL_TOPOLOGY)
-    driver = full.pose(np.repeat(draws["identities"][:, 0], T, 0), draws["motion"].reshape(B * T, bones, 3),
-                       draws["translation"].reshape(B * T, 3)).reshape(B, T, -1, 3)
-    rest, _ = rest_bodies(draws["identities"][:, 0])
-    cases = []
-    for b, index in enumerate(indices):
-        vertices, faces = remesh(rest[b], full.faces)
-        frames = AttachedPoints.attach(vertices, rest[b], full.faces).on(driver[b], full.faces)
-        perm = _generator(stream.seed, "driver-shuffle", split, int(epoch), int(index)).permutation(len(vertices))
-        frames, faces = shuffle_vertices(frames, faces, perm)
-        cases.append({**_case(target[b, 0], stream.faces, truth[b], drive[b]), "driving": center_bbox(frames),
-                      "driving_faces": faces})
-    return cases
+    driver = full.pose(np.repeat(draws["identities"][:, 0], T, 0), draws["motion"].reshape(T, bones, 3),
+                       draws["translation"].reshape(T, 3))
+    (rest,), _ = rest_bodies(draws["identities"][:, 0])
+    vertices, faces = remesh(rest, full.faces)
+    frames = AttachedPoints.attach(vertices, rest, full.faces).on(driver, full.faces)
+    perm = _generator(stream.seed, "driver-shuffle", split, int(epoch), int(index)).permutation(len(vertices))
+    frames, faces = shuffle_vertices(frames, faces, perm)
+    return {**_case(target[0], stream.faces, truth, drive), "driving": center_bbox(frames), "driving_faces": faces}
 
 
 def variant_pairs(stream: StreamPairs, split: str, epoch: int, indices: Sequence[int],
@@ -300,72 +296,66 @@ def variant_pairs(stream: StreamPairs, split: str, epoch: int, indices: Sequence
     ``driving_faces``); all bounding-box centred per mesh. Each pair is made alone, so it is the same
     whatever else is drawn with it: Anny's batched bodies differ with the batch at float level, and a
     decimation or a fit turns that into another mesh (docs/results.md)."""
-    return [pair for index in indices for pair in _variant_batch(stream, split, epoch, [index], variants)]
+    return [_variant_pair(stream, split, epoch, index, variants) for index in indices]
 
 
-def _variant_batch(stream: StreamPairs, split: str, epoch: int, indices: Sequence[int],
-                   variants: Sequence[str]) -> list[dict]:
-    """``variant_pairs`` of ``indices`` made in one batch."""
-    draws = stream.draws(split, epoch, indices)
+def _variant_pair(stream: StreamPairs, split: str, epoch: int, index: int, variants: Sequence[str]) -> dict:
+    """``variant_pairs``' pair ``index``, its bodies made in a batch of one."""
+    draws = stream.draws(split, epoch, [index])
     topologies = {"same": stream.topology, "shuffled": stream.topology,
                   "topology": OTHER_TOPOLOGY.get(stream.topology, "notoes_collapse3pc")}
     needed = {topologies.get(v, FULL_TOPOLOGY) for v in variants if v != "foreign_driver"}
-    meshes = {t: pose_pairs(_body_model(t), draws) for t in needed | {stream.topology}}
+    meshes = {t: [m[0] for m in pose_pairs(_body_model(t), draws)] for t in needed | {stream.topology}}
     driving = center_bbox(meshes[stream.topology][0])
     full = _body_model(FULL_TOPOLOGY)
     carried = set(variants) & set(CARRIED)
     if carried:
-        rest, heads = rest_bodies(draws["identities"][:, 1])
+        (rest,), (head,) = rest_bodies(draws["identities"][:, 1])
+        decimated, decimated_faces = remesh(rest, full.faces)
     if {"posed", "rotated", "seams"} & set(variants):
-        posed = full.pose(draws["identities"][:, 1], posed_target_poses(stream, split, epoch, indices))
-    foreign = _foreign_driver(stream, split, epoch, indices) if "foreign_driver" in variants else None
-    pairs = []
-    for b, index in enumerate(indices):
-        keys = (split, int(epoch), int(index))
-        pair = {"driving": driving[b]}
-        if carried:
-            decimated, decimated_faces = remesh(rest[b], full.faces)
-        for variant in variants:
-            if variant == "foreign_driver":
-                pair[variant] = foreign[b]
-                continue
-            drive, truth, target = (m[b] for m in meshes[topologies.get(variant, FULL_TOPOLOGY)])
-            target, faces = target[0], _body_model(topologies.get(variant, FULL_TOPOLOGY)).faces
-            if variant == "shuffled":
-                perm = _generator(stream.seed, "shuffle", *keys).permutation(len(target))
-                _, faces = shuffle_vertices(target, faces, perm)
-                target, drive, truth = (x[..., perm, :] for x in (target, drive, truth))
-            elif variant == "remeshed":
-                remeshed, remeshed_faces = remesh(target, faces)
-                on_body = closest_points(remeshed, target, faces)
-                drive, truth = (on_body.on(x, faces) for x in (drive, truth))
-                target, faces = remeshed, remeshed_faces
-            elif variant == "dense":
-                frames, faces = subdivide(np.concatenate([target[None], truth, drive]), faces)
-                perm = _generator(stream.seed, "dense-shuffle", *keys).permutation(frames.shape[1])
-                frames, faces = shuffle_vertices(frames, faces, perm)
-                target, truth, drive = frames[0], frames[1 : 1 + len(truth)], frames[1 + len(truth) :]
-            elif variant in CARRIED:
-                points, faces = decimated, decimated_faces
-                if variant == "parts":
-                    part_points, part_faces = extra_parts(heads[b])
-                    points, faces = np.concatenate([points, part_points]), np.concatenate([faces, part_faces + len(points)])
-                elif variant == "seams":
-                    points, faces, _ = split_at_seams(points, faces, seam_islands(points, faces))
-                carry = [AttachedPoints.attach(points, rest[b], full.faces)]
-                if variant == "props":
-                    prop_points, prop_faces = held_prop(heads[b])
-                    carry.append(AttachedPoints.rigid(prop_points, rest[b], full.faces))
-                    faces = np.concatenate([faces, prop_faces + len(points)])
-                full_target = posed[b] if variant in ("posed", "rotated", "seams") else target
-                target, truth, drive = (np.concatenate([c.on(x, full.faces) for c in carry], -2)
-                                        for x in (full_target, truth, drive))
-                if variant in ("rotated", "lying"):
-                    rng = _generator(stream.seed, f"{variant}-target", *keys)
-                    turn = random_rotation(rng) if variant == "rotated" else lying_rotation(rng)
-                    target = (target @ turn.T).astype(np.float32)
-                elif variant in ("glb", "seams"):
-                    target = glb_round_trip(target, faces)
-            pair[variant] = _case(target, faces, truth, drive)
-        pairs.append(pair)
-    return pairs
+        (posed,) = full.pose(draws["identities"][:, 1], posed_target_poses(stream, split, epoch, [index]))
+    keys = (split, int(epoch), int(index))
+    pair = {"driving": driving}
+    for variant in variants:
+        if variant == "foreign_driver":
+            pair[variant] = _foreign_driver(stream, split, epoch, index)
+            continue
+        drive, truth, target = meshes[topologies.get(variant, FULL_TOPOLOGY)]
+        target, faces = target[0], _body_model(topologies.get(variant, FULL_TOPOLOGY)).faces
+        if variant == "shuffled":
+            perm = _generator(stream.seed, "shuffle", *keys).permutation(len(target))
+            _, faces = shuffle_vertices(target, faces, perm)
+            target, drive, truth = (x[..., perm, :] for x in (target, drive, truth))
+        elif variant == "remeshed":
+            remeshed, remeshed_faces = remesh(target, faces)
+            on_body = closest_points(remeshed, target, faces)
+            drive, truth = (on_body.on(x, faces) for x in (drive, truth))
+            target, faces = remeshed, remeshed_faces
+        elif variant == "dense":
+            frames, faces = subdivide(np.concatenate([target[None], truth, drive]), faces)
+            perm = _generator(stream.seed, "dense-shuffle", *keys).permutation(frames.shape[1])
+            frames, faces = shuffle_vertices(frames, faces, perm)
+            target, truth, drive = frames[0], frames[1 : 1 + len(truth)], frames[1 + len(truth) :]
+        elif variant in CARRIED:
+            points, faces = decimated, decimated_faces
+            if variant == "parts":
+                part_points, part_faces = extra_parts(head)
+                points, faces = np.concatenate([points, part_points]), np.concatenate([faces, part_faces + len(points)])
+            elif variant == "seams":
+                points, faces, _ = split_at_seams(points, faces, seam_islands(points, faces))
+            carry = [AttachedPoints.attach(points, rest, full.faces)]
+            if variant == "props":
+                prop_points, prop_faces = held_prop(head)
+                carry.append(AttachedPoints.rigid(prop_points, rest, full.faces))
+                faces = np.concatenate([faces, prop_faces + len(points)])
+            full_target = posed if variant in ("posed", "rotated", "seams") else target
+            target, truth, drive = (np.concatenate([c.on(x, full.faces) for c in carry], -2)
+                                    for x in (full_target, truth, drive))
+            if variant in ("rotated", "lying"):
+                rng = _generator(stream.seed, f"{variant}-target", *keys)
+                turn = random_rotation(rng) if variant == "rotated" else lying_rotation(rng)
+                target = (target @ turn.T).astype(np.float32)
+            elif variant in ("glb", "seams"):
+                target = glb_round_trip(target, faces)
+        pair[variant] = _case(target, faces, truth, drive)
+    return pair
